@@ -1,0 +1,43 @@
+"""Strict numerics for every test: float64 available, strict dtype promotion, seeded keys."""
+
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+#: Real data that ships beside the repository (meshes, ICT-FaceKit); see its README.
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.fixture
+def key():
+    """A fixed-seed key: tests are deterministic."""
+    return jax.random.key(0)
+
+
+def mirror_tile(image: np.ndarray, size: int) -> np.ndarray:
+    """Mirror-tile a texture to (size, size) so it stays continuous across the seams."""
+    reps = -(-size // image.shape[0]) + 1
+    row = np.concatenate([image, image[::-1]] * reps, axis=0)
+    tile = np.concatenate([row, row[:, ::-1]] * reps, axis=1)
+    return np.ascontiguousarray(tile[:size, :size])
+
+
+@pytest.fixture(scope="session")
+def gravel() -> np.ndarray:
+    """scikit-image's real gravel texture (CC0), 512×512, float64 in [0, 1]."""
+    from skimage import data
+
+    return data.gravel().astype(np.float64) / 255.0
+
+
+@pytest.fixture(scope="session")
+def brick() -> np.ndarray:
+    """scikit-image's real brick texture (CC0), 512×512, float64 in [0, 1]."""
+    from skimage import data
+
+    return data.brick().astype(np.float64) / 255.0
