@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Literal
+from typing import Any, Literal
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
 from jface import _checks
@@ -78,7 +79,7 @@ def max_scales(shape: tuple[int, int]) -> int:
 
 
 def build(
-    image: Float[Array, "*batch H W"],
+    image: ArrayLike,
     n_scales: int = 4,
     n_orientations: int = 4,
     *,
@@ -122,7 +123,7 @@ def build(
     return Pyramid(highpass, bands, lowpass, image_shape=tuple(shape), pad=pad)
 
 
-def collapse(pyramid: Pyramid) -> Float[Array, "*batch H W"]:
+def collapse(pyramid: Any) -> Float[Array, "*batch H W"]:
     """Reconstruct the image from a :class:`Pyramid` (exact inverse of :func:`build`)."""
     if not isinstance(pyramid, Pyramid):
         raise TypeError(f"pyramid must be a Pyramid, got {type(pyramid).__name__}")

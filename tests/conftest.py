@@ -41,3 +41,14 @@ def brick() -> np.ndarray:
     from skimage import data
 
     return data.brick().astype(np.float64) / 255.0
+
+
+@pytest.fixture
+def unchecked():
+    """Switch off the test-time jaxtyping/beartype checks, so bad-input tests see the library's
+    own validation messages (what a user without the checker gets)."""
+    import jaxtyping
+
+    jaxtyping.config.update("jaxtyping_disable", True)
+    yield
+    jaxtyping.config.update("jaxtyping_disable", False)

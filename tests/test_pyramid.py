@@ -106,7 +106,7 @@ def test_reflect_boundary_keeps_edges_apart():
         assert right_refl < (0.01 if s < 2 else 0.1) * right_circ
 
 
-def test_bad_input():
+def test_bad_input(unchecked):
     with pytest.raises(ValueError, match="n_scales=4 is too many"):
         pyramid.build(jnp.zeros((32, 32)))
     with pytest.raises(TypeError, match="image must have a floating-point dtype"):
