@@ -69,11 +69,9 @@ def shade(
     if n_octaves is None:
         n_octaves = max(1, int(math.log2(max(min(height.shape) // 8, 2))))
     n_octaves = _checks.integer(n_octaves, "n_octaves", low=1)
-    light = np.array(
-        [
-            math.cos(math.radians(azimuth)) * math.cos(math.radians(elevation)),
-            -math.sin(math.radians(azimuth)) * math.cos(math.radians(elevation)),
-        ]
+    light = (
+        math.cos(math.radians(azimuth)) * math.cos(math.radians(elevation)),
+        -math.sin(math.radians(azimuth)) * math.cos(math.radians(elevation)),
     )
     shading = jnp.zeros_like(height)
     finer = height

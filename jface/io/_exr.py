@@ -112,7 +112,7 @@ def read_exr(path: str | os.PathLike) -> ExrImage:
     if not path.is_file():
         raise FileNotFoundError(f"no such EXR file: {path}")
     try:
-        exr = OpenEXR.File(str(path))
+        exr = OpenEXR.File(str(path), separate_channels=True)
         header = exr.header()
         channels = {
             name: np.array(channel.pixels, dtype=np.float32)
