@@ -13,7 +13,7 @@ from jface import _checks, pyramid, tiles
 from jface.detail._stats import DetailStats, check_layout
 
 #: Defaults chosen on real textures (see tests/test_detail.py and benchmarks/bench_detail.py).
-N_ITER = 8
+N_ITER = 12
 NOISE = 0.1
 
 
