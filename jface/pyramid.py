@@ -125,6 +125,12 @@ def build(
             f"at most {max(max_scales(shape), 0)} (min(H, W) must be >= 2**(n_scales + 2) = "
             f"{2 ** (n_scales + 2)})"
         )
+    return _build(image, n_scales, n_orientations, boundary)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _build(image: Array, n_scales: int, n_orientations: int, boundary: str) -> Pyramid:
+    shape = image.shape[-2:]
     pad = padding(shape, n_scales, boundary)
     padded = pad_image(image, pad)
     filters = make_filters(padded.shape[-2:], n_scales, n_orientations, np.dtype(image.dtype).name)
@@ -136,9 +142,14 @@ def collapse(pyramid: Any) -> Float[Array, "*batch H W"]:
     """Reconstruct the image from a :class:`Pyramid` (exact inverse of :func:`build`)."""
     if not isinstance(pyramid, Pyramid):
         raise TypeError(f"pyramid must be a Pyramid, got {type(pyramid).__name__}")
-    n_scales = pyramid.n_scales
+    return _collapse(pyramid)
+
+
+@jax.jit
+def _collapse(pyramid: Pyramid) -> Array:
     dtype = np.dtype(pyramid.highpass.dtype).name
-    filters = make_filters(pyramid.highpass.shape[-2:], n_scales, pyramid.n_orientations, dtype)
+    shape = pyramid.highpass.shape[-2:]
+    filters = make_filters(shape, pyramid.n_scales, pyramid.n_orientations, dtype)
     padded = _synthesise(filters, pyramid.highpass, pyramid.bands, pyramid.lowpass)
     top, _, left, _ = pyramid.pad
     h, w = pyramid.image_shape
