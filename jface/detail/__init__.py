@@ -4,6 +4,7 @@
 ``synthesize`` coerces an image to target statistics.
 """
 
+from jface.detail._database import analyze_batch, build_database
 from jface.detail._population import Population
 from jface.detail._stats import (
     DetailStats,
@@ -21,7 +22,9 @@ __all__ = [
     "DetailStats",
     "Population",
     "analyze",
+    "analyze_batch",
     "analyze_like",
+    "build_database",
     "load_stats",
     "mean_stats",
     "save_stats",
