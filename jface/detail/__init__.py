@@ -4,6 +4,16 @@
 ``synthesize`` coerces an image to target statistics.
 """
 
+from jface.detail._analysis import (
+    PCA,
+    CrossValidation,
+    GroupComparison,
+    compare_groups,
+    cross_validate,
+    group_by,
+    log_features,
+    stats_pca,
+)
 from jface.detail._database import analyze_batch, build_database
 from jface.detail._population import Population
 from jface.detail._stats import (
@@ -19,16 +29,24 @@ from jface.detail._stats import (
 from jface.detail._synthesis import synthesize
 
 __all__ = [
+    "PCA",
+    "CrossValidation",
     "DetailStats",
+    "GroupComparison",
     "Population",
     "analyze",
     "analyze_batch",
     "analyze_like",
     "build_database",
+    "compare_groups",
+    "cross_validate",
+    "group_by",
     "load_stats",
+    "log_features",
     "mean_stats",
     "save_stats",
     "stack_stats",
     "stats_error",
+    "stats_pca",
     "synthesize",
 ]
