@@ -52,6 +52,11 @@ def test_matches_pyrtools_on_real_texture(gravel):
             ours.append(np.std(np.asarray(pyr.bands[s][b], np.float64)))
             theirs.append(np.std(ref.pyr_coeffs[(s, b)]))
     np.testing.assert_allclose(ours, theirs, rtol=1e-4)
+    # Coefficient by coefficient too: same signs, orientation order and layout.
+    assert rel_err(pyr.highpass, ref.pyr_coeffs["residual_highpass"]) < 1e-4
+    for s in range(4):
+        for b in range(4):
+            assert rel_err(pyr.bands[s][b], ref.pyr_coeffs[(s, b)]) < 1e-4
     # Coarse bands carry pyrtools' scaling (4x per octave), not a renormalised one.
     assert 10 < ours[-1] / ours[1] < 1000
 
