@@ -195,10 +195,8 @@ def read_landmarks(path: str | os.PathLike) -> dict[str, Landmark]:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as err:
         raise ValueError(f"{path} is not a readable text file: {err}") from err
-    if path.suffix.lower() == ".csv":
-        pairs = _csv_pairs(path, text)
-    else:
-        pairs = _json_pairs(path, text)
+    is_csv = path.suffix.lower() == ".csv"
+    pairs = _csv_pairs(path, text) if is_csv else _json_pairs(path, text)
     seen: dict[str, Landmark] = {}
     duplicates = []
     for name, value in pairs:

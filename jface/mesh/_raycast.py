@@ -123,7 +123,7 @@ def _cast_kdtree(index: ScanIndex, o: np.ndarray, d: np.ndarray, max_distance: f
 def _nearest_hits(
     index: ScanIndex, o: np.ndarray, d: np.ndarray, rays: np.ndarray, reach: float, best, which
 ) -> None:
-    """Update ``best`` (and the triangles ``which``) with the nearest hits within ``reach`` of the given rays."""
+    """Update ``best`` (and the triangles ``which``) with the nearest hits within ``reach``."""
     n_faces = len(index.faces)
     k = min(32, n_faces)
     todo = rays

@@ -50,7 +50,7 @@ class SubdivisionOperator(eqx.Module):
     n_in: int = eqx.field(static=True)
     n_out: int = eqx.field(static=True)
 
-    def __call__(self, x: Float[Array, "n_in *channels"]) -> Float[Array, "n_out *channels"]:
+    def __call__(self, x: Float[Array, "n_in ..."]) -> Float[Array, "n_out ..."]:
         """Apply the operator to per-vertex values ``(n_in, ...)``."""
         if x.shape[0] != self.n_in:
             raise ValueError(

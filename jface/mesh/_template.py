@@ -51,27 +51,21 @@ LANDMARK_NAMES: tuple[str, ...] = (
     "left_temple",
 )
 
+_MEDIAPIPE = (
+    10, 152, 1, 33, 263, 133, 362, 61, 291, 0, 17, 234, 454, 172, 397, 70, 300, 129, 358, 67, 297
+)  # fmt: skip
+_ICT = (
+    976, 965, 4553, 1622, 3831, 891, 3132, 6643, 6679, 4541, 5945, 1238, 3456, 757, 2998, 993,
+    3213, 4565, 5030, 1859, 4059,
+)  # fmt: skip
+
 #: Vertex ids of the landmarks on the MediaPipe canonical face (and any MediaPipe face mesh).
-MEDIAPIPE_IDS: dict[str, int] = dict(
-    zip(
-        LANDMARK_NAMES,
-        (10, 152, 1, 33, 263, 133, 362, 61, 291, 0, 17, 234, 454, 172, 397, 70, 300, 129, 358)
-        + (67, 297),
-        strict=True,
-    )
-)
+MEDIAPIPE_IDS: dict[str, int] = dict(zip(LANDMARK_NAMES, _MEDIAPIPE, strict=True))
 
 #: Vertex ids of the landmarks on the ICT-FaceKit face area (9409 vertices; every identity and
 #: expression shares them). Found by a scaled rigid ICP of the MediaPipe face onto the ICT neutral
 #: face (RMS 0.8 mm) and taking the nearest ICT vertex of each MediaPipe landmark.
-ICT_IDS: dict[str, int] = dict(
-    zip(
-        LANDMARK_NAMES,
-        (976, 965, 4553, 1622, 3831, 891, 3132, 6643, 6679, 4541, 5945, 1238, 3456, 757, 2998)
-        + (993, 3213, 4565, 5030, 1859, 4059),
-        strict=True,
-    )
-)
+ICT_IDS: dict[str, int] = dict(zip(LANDMARK_NAMES, _ICT, strict=True))
 
 _LAYOUT = np.array(
     [
