@@ -58,7 +58,11 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
     if not path.is_file():
         raise FileNotFoundError(f"no such mesh file: {path}")
     try:
-        loaded = trimesh.load(str(path), process=merge, force="mesh")
+        loaded = trimesh.load(str(path), process=merge)
+        if isinstance(loaded, trimesh.Scene):
+            parts = list(loaded.geometry.values())
+            meshes = [g for g in parts if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+            loaded = trimesh.util.concatenate(meshes) if meshes else (parts[0] if parts else None)
     except Exception as err:  # trimesh raises many types for bad files
         raise ValueError(f"{path} is not a readable mesh (corrupt or truncated?): {err}") from err
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
