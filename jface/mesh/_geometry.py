@@ -13,6 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 from jaxtyping import Array, Float, Int
 
 
@@ -67,7 +68,7 @@ def _rasterise(sampler: ImageSampler, values: Array) -> Array:
     return jnp.sum(w * values[sampler.corners], axis=-1).reshape(sampler.shape)
 
 
-def image_sampler(uv: np.ndarray, faces: np.ndarray, shape: tuple[int, int]) -> ImageSampler:
+def image_sampler(uv: ArrayLike, faces: ArrayLike, shape: tuple[int, int]) -> ImageSampler:
     """Locate every pixel centre of an ``shape`` image in a triangle mesh laid out in ``uv``.
 
     Pixel centres on no triangle (outside the layout, or in a crack of rounding width) take the

@@ -4,7 +4,8 @@ the scan's triangles, within ``|t| <= max_distance`` (host-side, numpy).
 Two casters give the same answer:
 
 - "embree": trimesh's Embree intersector (``embreex``), one ray forward and one backward per
-  vertex, the nearer hit kept. Fast; used when installed.
+  vertex, the nearer hit kept; the few rays it misses (grazing the scan's border) are settled
+  by the exact caster below. Fast; used when installed.
 - "kdtree": bounded segments over a k-d tree of triangle centroids. A segment of half-length
   ``r`` around ``o`` can only meet triangles whose centroid lies within ``r + R`` of ``o``
   (``R`` = the largest centroid-to-corner distance), so candidates come from a radius query and
@@ -82,9 +83,15 @@ def cast(index: ScanIndex, origins, directions, max_distance: float) -> Hits:
     """
     origins = np.asarray(origins, dtype=np.float64)
     directions = np.asarray(directions, dtype=np.float64)
-    if index.method == "embree":
-        return _cast_embree(index, origins, directions, max_distance)
-    return _cast_kdtree(index, origins, directions, max_distance)
+    if index.method != "embree":
+        return _cast_kdtree(index, origins, directions, max_distance)
+    hits = _cast_embree(index, origins, directions, max_distance)
+    missed = np.flatnonzero(~hits.hit)
+    if len(missed):  # grazing rays (origins on the scan's border): settle them exactly
+        again = _cast_kdtree(index, origins[missed], directions[missed], max_distance)
+        for field, value in zip(hits, again, strict=True):
+            field[missed] = value
+    return hits
 
 
 def _cast_embree(index: ScanIndex, o: np.ndarray, d: np.ndarray, max_distance: float) -> Hits:

@@ -306,14 +306,6 @@ def reconstruct(
     return position
 
 
-def _square_corners(uv: np.ndarray) -> tuple[int, ...]:
-    corners = []
-    for corner in ((0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)):
-        d = np.abs(uv - np.asarray(corner)).max(axis=1)
-        corners += list(np.flatnonzero(d < 1e-6))
-    return tuple(int(c) for c in corners)
-
-
 def displace(
     base: Any,
     image: ArrayLike,
@@ -324,14 +316,16 @@ def displace(
     """Apply a displacement image to a base mesh: the detailed face.
 
     Each vertex moves along the base normal by ``scale ×`` the image sampled (bilinearly) at its
-    rectangle coordinates. With ``extra_subdivisions`` the base is Loop-subdivided first (corners
-    of the rectangle fixed), so detail finer than the base mesh shows.
+    rectangle coordinates. With ``extra_subdivisions`` the base is first split at its edge
+    midpoints, positions, rectangle coordinates and normals alike, so detail finer than the
+    base mesh shows: the new vertices lie on the base triangles, where :func:`remesh` measured
+    the displacement, and move along interpolated normals.
 
     Args:
         base: a mesh with ``vertices (V, 3)``, ``faces (F, 3)`` and ``uv (V, 2)``
             (:class:`Mesh`, :class:`jface.io.MeshData`, or :attr:`Remeshed.base`).
         image: ``(H, W)`` displacement image (same units as the mesh).
-        extra_subdivisions: Loop subdivisions before displacing (0–3).
+        extra_subdivisions: midpoint subdivisions before displacing (0–3).
         scale: factor on the displacement (0 gives the base mesh, 2 exaggerates).
 
     Returns:
@@ -361,13 +355,15 @@ def displace(
     extra = _checks.integer(extra_subdivisions, "extra_subdivisions", low=0, high=3)
     scale = _checks.real(scale, "scale")
     check_manifold(faces, vertices.shape[0], "the base mesh")
+    normals = vertex_normals(vertices, jnp.asarray(faces, dtype=jnp.int32))
     if extra:
-        corners = _square_corners(np.asarray(uv))
-        both, faces = subdivide(
-            jnp.concatenate([vertices, uv], axis=1), faces, "loop", levels=extra, corners=corners
+        # Midpoint subdivision of positions, uv and normals: the new vertices lie on the base
+        # triangles (where the displacement was measured) with interpolated normals.
+        stacked, faces = subdivide(
+            jnp.concatenate([vertices, uv, normals], axis=1), faces, "linear", levels=extra
         )
-        vertices, uv = both[:, :3], both[:, 3:]
+        vertices, uv, normals = stacked[:, :3], stacked[:, 3:5], stacked[:, 5:]
+        normals = normals / jnp.linalg.norm(normals, axis=1, keepdims=True)
     faces_j = jnp.asarray(faces, dtype=jnp.int32)
-    normals = vertex_normals(vertices, faces_j)
     amount = jnp.asarray(scale, dtype=jnp.float32) * sample_image(image, uv)
     return Mesh(vertices + amount[:, None] * normals, faces_j, uv)
