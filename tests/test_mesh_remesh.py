@@ -6,10 +6,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
+from conftest import SHARED_DATA
 from scipy.spatial import cKDTree
 
 from jface import io, mesh
-from conftest import SHARED_DATA
 
 #: Small schedule for tests: 2 linear + 1 Loop projected, 3 Loop smoothing → 131k triangles.
 SCHEDULE = {"n_linear": 2, "n_loop": 1, "n_smooth": 3}
