@@ -198,3 +198,32 @@ def test_non_manifold_and_degenerate_topology():
         mesh.subdivide_topology(np.array([[0, 0, 1]]), 2, "loop")
     with pytest.raises(ValueError, match="scheme"):
         mesh.subdivide_topology(faces[:1], 3, "butterfly")
+
+
+def test_cli_remesh_and_displace(tmp_path, capsys):
+    from jface.cli import main
+
+    face = mesh.canonical_face()
+    scan = io.write_mesh(tmp_path / "face.obj", np.asarray(face.vertices), np.asarray(face.faces))
+    marks = io.write_landmarks(tmp_path / "marks.json", mesh.MEDIAPIPE_IDS)
+    out = tmp_path / "out"
+    small = ["--linear", "1", "--loop", "1", "--smooth", "1", "--image-size", "64"]
+    argv = ["remesh", str(scan), "--landmarks", str(marks), "--out-dir", str(out), *small]
+    assert main(argv) == 0
+    assert "hit rates" in capsys.readouterr().out
+    names = {p.name for p in out.iterdir()}
+    assert {"base.obj", "displacement.exr", "displacement.png", "base_shaded.png"} <= names
+    exr = io.read_exr(out / "displacement.exr")
+    assert exr.metadata["source"] == "face.obj" and exr.metadata["schedule"] == [1, 1, 1]
+    assert np.all(np.isfinite(exr.channels["Y"]))
+    result = tmp_path / "detailed.ply"
+    argv = ["displace", str(out / "base.obj"), str(out / "displacement.exr"), "--out", str(result)]
+    assert main([*argv, "--extra", "1"]) == 0
+    detailed = io.read_mesh(result, merge=False)
+    assert len(detailed.faces) == 4 * 32 * 4**3 and detailed.uv is not None
+    base = out / "base.obj"
+    before = base.read_bytes()
+    argv = ["displace", str(base), str(out / "displacement.exr"), "--out", str(base)]
+    assert main(argv) == 2  # an input is never overwritten
+    assert base.read_bytes() == before
+    assert "overwrite" in capsys.readouterr().err
