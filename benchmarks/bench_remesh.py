@@ -96,7 +96,7 @@ def run_case(n_subdivisions: int) -> None:
                 json.dumps(
                     {
                         "case": f"remesh_{method}_vs_{name}",
-                        "scan_triangles": int(len(faces)),
+                        "scan_triangles": len(faces),
                         "base_triangles": int(result.base.faces.shape[0]),
                         "image": list(result.image.shape),
                         "jface_s": round(seconds, 3),
