@@ -52,8 +52,25 @@ class ScanIndex:
         from scipy.spatial import cKDTree
 
         self.centroids = tri.mean(axis=1)
-        self.radius = float(np.linalg.norm(tri - self.centroids[:, None], axis=-1).max())
+        self.v0 = np.ascontiguousarray(tri[:, 0])
+        self.e1 = np.ascontiguousarray(tri[:, 1] - tri[:, 0])
+        self.e2 = np.ascontiguousarray(tri[:, 2] - tri[:, 0])
+        radii = np.linalg.norm(tri - self.centroids[:, None], axis=-1).max(axis=1)
+        self.radius = float(radii.max())
         self.tree = cKDTree(self.centroids)
+        # Triangles grouped by size (factors of 2), one tree each: a query around a ray only
+        # pays for the largest triangle of each group, not of the whole scan.
+        size_class = np.floor(np.log2(np.maximum(radii, 1e-300) / max(radii.min(), 1e-300)))
+        size_class = np.minimum(size_class.astype(np.int64), 7)
+        self.groups = []
+        pending: list[np.ndarray] = []
+        classes = np.unique(size_class)
+        for i, c in enumerate(classes):  # merge small groups into the next larger size
+            pending.append(np.flatnonzero(size_class == c))
+            if sum(map(len, pending)) >= 0.05 * len(radii) or i == len(classes) - 1:
+                ids = np.concatenate(pending)
+                self.groups.append((ids, cKDTree(self.centroids[ids]), float(radii[ids].max())))
+                pending = []
         self._embree = None
         if self.method == "embree":
             import trimesh
@@ -131,48 +148,59 @@ def _nearest_hits(
     index: ScanIndex, o: np.ndarray, d: np.ndarray, rays: np.ndarray, reach: float, best, which
 ) -> None:
     """Update ``best`` (and the triangles ``which``) with the nearest hits within ``reach``."""
-    n_faces = len(index.faces)
-    k = min(32, n_faces)
-    todo = rays
-    while len(todo):
-        overfull = []
-        step = max(1, (1 << 22) // k)
-        for start in range(0, len(todo), step):
-            chunk = todo[start : start + step]
-            dist, cand = index.tree.query(
-                o[chunk], k=k, distance_upper_bound=reach + index.radius, workers=-1
-            )
-            dist, cand = dist.reshape(len(chunk), k), cand.reshape(len(chunk), k)
-            full = np.isfinite(dist[:, -1]) if k < n_faces else np.zeros(len(chunk), bool)
-            overfull.append(chunk[full])  # maybe more candidates: again with a larger k
-            local, col = np.nonzero(np.isfinite(dist) & ~full[:, None])
-            r, f = chunk[local], cand[local, col]
-            t, ok = _intersect(o[r], d[r], index.triangles[f])
-            ok &= np.abs(t) <= reach
-            r, t, f = r[ok], t[ok], f[ok]
-            order = np.argsort(np.abs(t))[::-1]  # nearest last, so it wins the assignment
-            r, t, f = r[order], t[order], f[order]
-            closer = np.abs(t) < np.abs(best[r])
-            best[r[closer]] = t[closer]
-            which[r[closer]] = f[closer]
-        todo = np.concatenate(overfull)
-        k = min(4 * k, n_faces)
+    for ids, tree, radius in index.groups:
+        n_faces = len(ids)
+        k = min(16, n_faces)
+        todo = rays
+        while len(todo):
+            overfull = []
+            step = max(1, (1 << 21) // k)
+            for start in range(0, len(todo), step):
+                chunk = todo[start : start + step]
+                dist, cand = tree.query(
+                    o[chunk], k=k, distance_upper_bound=reach + radius, workers=-1
+                )
+                dist, cand = dist.reshape(len(chunk), k), cand.reshape(len(chunk), k)
+                full = np.isfinite(dist[:, -1]) if k < n_faces else np.zeros(len(chunk), bool)
+                overfull.append(chunk[full])  # maybe more candidates: again with a larger k
+                local, col = np.nonzero(np.isfinite(dist) & ~full[:, None])
+                r, f = chunk[local], ids[cand[local, col]]
+                t, ok = _intersect(o[r], d[r], index.v0[f], index.e1[f], index.e2[f])
+                ok &= np.abs(t) <= reach
+                r, t, f = r[ok], t[ok], f[ok]
+                order = np.argsort(np.abs(t))[::-1]  # nearest last, so it wins the assignment
+                r, t, f = r[order], t[order], f[order]
+                closer = np.abs(t) < np.abs(best[r])
+                best[r[closer]] = t[closer]
+                which[r[closer]] = f[closer]
+            todo = np.concatenate(overfull)
+            k = min(4 * k, n_faces)
 
 
-def _intersect(o: np.ndarray, d: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def _intersect(o, d, v0, e1, e2) -> tuple[np.ndarray, np.ndarray]:
     """Möller–Trumbore for lines (any sign of t): parameter t and whether the line meets the
-    triangle."""
-    e1 = tri[:, 1] - tri[:, 0]
-    e2 = tri[:, 2] - tri[:, 0]
-    p = np.cross(d, e2)
-    det = np.einsum("ij,ij->i", e1, p)
-    ok = np.abs(det) > 1e-14 * np.maximum(np.einsum("ij,ij->i", e1, e1), 1e-300)
+    triangle ``v0 + a·e1 + b·e2``."""
+    p = _cross(d, e2)
+    det = _dot(e1, p)
+    ok = np.abs(det) > 1e-14 * np.maximum(_dot(e1, e1), 1e-300)
     inv = 1.0 / np.where(ok, det, 1.0)
-    s = o - tri[:, 0]
-    u = np.einsum("ij,ij->i", s, p) * inv
-    q = np.cross(s, e1)
-    v = np.einsum("ij,ij->i", d, q) * inv
-    t = np.einsum("ij,ij->i", e2, q) * inv
+    s = o - v0
+    u = _dot(s, p) * inv
+    q = _cross(s, e1)
+    v = _dot(d, q) * inv
+    t = _dot(e2, q) * inv
     eps = 1e-9
     ok &= (u >= -eps) & (v >= -eps) & (u + v <= 1.0 + eps)
     return t, ok
