@@ -227,3 +227,14 @@ def test_cli_remesh_and_displace(tmp_path, capsys):
     assert main(argv) == 2  # an input is never overwritten
     assert base.read_bytes() == before
     assert "overwrite" in capsys.readouterr().err
+
+
+def test_paper_schedule_sizes():
+    hier = mesh.template_hierarchy()  # 2 linear + 2 Loop projected, 3 Loop smoothing
+    assert [level.scheme for level in hier.levels[1:]] == ["linear"] * 2 + ["loop"] * 5
+    assert hier.control.faces.shape == (8192, 3)
+    assert hier.base.faces.shape == (524_288, 3)  # the paper's "~500k triangles"
+    uv = np.asarray(hier.base.uv)
+    assert uv.min() >= -1e-6 and uv.max() <= 1 + 1e-6
+    corners = uv[list(mesh.marker_template().corners)]
+    np.testing.assert_allclose(sorted(map(tuple, corners)), [(0, 0), (0, 1), (1, 0), (1, 1)])
