@@ -137,6 +137,9 @@ def test_two_ict_identities_correspond_pixel_for_pixel():
         )
         people.append(person)
     a, b = results
+    # Levels of two faces mix (the paper's aging): coarse shape of one, finer levels of the other.
+    mixed = mesh.reconstruct(a.markers, (*a.offsets[:1], *b.offsets[1:]), a.hierarchy())
+    assert mixed.shape == a.control.shape and np.all(np.isfinite(np.asarray(mixed)))
     np.testing.assert_array_equal(np.asarray(a.base.faces), np.asarray(b.base.faces))
     np.testing.assert_array_equal(np.asarray(a.base.uv), np.asarray(b.base.uv))
     assert not np.allclose(a.base.vertices, b.base.vertices, atol=0.1)
