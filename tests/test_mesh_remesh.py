@@ -42,20 +42,8 @@ def remeshed(synthetic):
 
 
 def _known_image(synthetic, result) -> np.ndarray:
-    """The detail the scan carries, where each base vertex's normal meets it: the per-vertex
-    displacement of the scan, interpolated over the scan triangle that the ray hits."""
-    verts, faces = np.asarray(synthetic.scan.vertices), np.asarray(synthetic.scan.faces)
-    base = np.asarray(result.base.vertices)
-    normals = np.asarray(mesh.vertex_normals(result.base.vertices, result.base.faces))
-    hits = mesh.cast(mesh.ScanIndex(verts, faces), base, normals, 1.0)
-    tri = faces[np.maximum(hits.triangle, 0)]
-    bary = trimesh.triangles.points_to_barycentric(
-        verts[tri], base + hits.distance[:, None] * normals
-    )
-    per_vertex = np.asarray(synthetic.detail(synthetic.smooth))
-    known = np.where(hits.hit, np.sum(bary * per_vertex[tri], axis=1), 0.0)
-    sampler = mesh.image_sampler(np.asarray(result.base.uv), result.base.faces, (256, 256))
-    return np.asarray(sampler(jnp.asarray(known, dtype=jnp.float32)))
+    known = mesh.known_displacement(synthetic, result.base)
+    return np.asarray(mesh.image_sampler(result.base.uv, result.base.faces, (256, 256))(known))
 
 
 def test_round_trip_recovers_known_detail(synthetic, remeshed):

@@ -145,7 +145,7 @@ def demo(out: Path, seed: int) -> None:
     scan = synthetic.scan
     start = time.perf_counter()
     result = mesh.remesh(
-        scan.vertices, np.asarray(scan.faces), synthetic.landmarks, image_size=512, fit=3,
+        scan.vertices, np.asarray(scan.faces), synthetic.landmarks, image_size=512, fit=2,
         n_linear=2, n_loop=1, n_smooth=3,
     )  # fmt: skip
     seconds = time.perf_counter() - start
@@ -153,12 +153,12 @@ def demo(out: Path, seed: int) -> None:
         seed=seed,
         source="mediapipe_canonical_face.obj, 4 Loop subdivisions + known detail",
         schedule=[2, 1, 3],
-        fit=3,
+        fit=2,
         hit_rates=[round(float(r), 5) for r in np.asarray(result.hit_rate)],
     )
     _write_result(out, result, meta, "ply")
     known = mesh.image_sampler(result.base.uv, result.base.faces, result.image.shape)(
-        synthetic.detail(result.base.vertices)
+        mesh.known_displacement(synthetic, result.base)
     )
     io.write_exr(out / "known_displacement.exr", np.asarray(known), metadata=meta)
     pair = [render.shade(np.asarray(known)), render.shade(np.asarray(result.image))]

@@ -34,6 +34,7 @@ from jface.mesh._synthetic import (
     SyntheticScan,
     canonical_face,
     detail_field,
+    known_displacement,
     synthetic_scan,
 )
 from jface.mesh._template import (
@@ -69,6 +70,7 @@ __all__ = [
     "has_embree",
     "ict_landmarks",
     "image_sampler",
+    "known_displacement",
     "landmark_points",
     "marker_template",
     "mean_edge_length",

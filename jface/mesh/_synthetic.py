@@ -127,3 +127,31 @@ def synthetic_scan(
     vertices = smooth + field(smooth)[:, None] * normals
     landmarks = {name: MEDIAPIPE_IDS[name] for name in LANDMARK_NAMES}
     return SyntheticScan(Mesh(vertices, faces_j, None), smooth, field, landmarks)
+
+
+def known_displacement(synthetic: SyntheticScan, base: Mesh) -> Float[Array, " v"]:
+    """The detail a synthetic scan carries where each base vertex's normal meets it: the scan's
+    per-vertex displacement interpolated over the scan triangle that the ray hits (0 where it
+    misses). The ground truth that :func:`~jface.mesh.remesh` should recover, per base vertex.
+
+    Args:
+        synthetic: from :func:`synthetic_scan`.
+        base: the base mesh of a remeshing of ``synthetic.scan``.
+    """
+    import trimesh
+
+    from jface.mesh._raycast import ScanIndex, cast
+
+    verts = np.asarray(synthetic.scan.vertices, dtype=np.float64)
+    faces = np.asarray(synthetic.scan.faces)
+    points = np.asarray(base.vertices, dtype=np.float64)
+    normals = np.asarray(vertex_normals(base.vertices, jnp.asarray(base.faces)), dtype=np.float64)
+    reach = float(np.linalg.norm(verts.max(0) - verts.min(0)))
+    hits = cast(ScanIndex(verts, faces), points, normals, reach)
+    tri = faces[np.maximum(hits.triangle, 0)]
+    bary = trimesh.triangles.points_to_barycentric(
+        verts[tri], points + hits.distance[:, None] * normals
+    )
+    per_vertex = np.asarray(synthetic.detail(synthetic.smooth), dtype=np.float64)
+    known = np.where(hits.hit, np.sum(bary * per_vertex[tri], axis=1), 0.0)
+    return jnp.asarray(known, dtype=jnp.float32)
