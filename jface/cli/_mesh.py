@@ -21,7 +21,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     rem.add_argument("scan", help="scan mesh (OBJ, PLY, ...)")
     rem.add_argument(
-        "--landmarks", required=True, help="JSON/CSV: the 21 template names → vertex id or x,y,z"
+        "--landmarks",
+        required=True,
+        help="JSON/CSV: the 21 template names → x,y,z or vertex id (ids count the vertices as "
+        "read with coincident ones merged, as jface.io.read_mesh does)",
     )
     rem.add_argument("--out-dir", required=True, help="output folder")
     rem.add_argument("--image-size", type=int, default=1024, help="displacement image size")

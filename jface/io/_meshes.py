@@ -180,7 +180,8 @@ def read_landmarks(path: str | os.PathLike) -> dict[str, Landmark]:
     """Read named landmarks from JSON or CSV.
 
     JSON: an object ``{"nose_tip": 1, "chin": [0.0, -9.4, 4.3], ...}`` (optionally nested under a
-    "landmarks" key): each value is a vertex id of the scan or a 3-D point. CSV: rows
+    "landmarks" key): each value is a vertex id of the scan (as :func:`read_mesh` numbers the
+    vertices) or a 3-D point. CSV: rows
     ``name,id`` or ``name,x,y,z``; a first row whose second field is not a number is a header.
 
     Returns:
