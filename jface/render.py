@@ -128,3 +128,51 @@ def stats_mosaic(std: ArrayLike, n_orientations: int, *, cell: int = 8, gap: int
         y, x = gap + row * (size + gap), gap + col * (size + gap)
         out[y : y + size, x : x + size] = picture
     return out
+
+
+#: Colours of overlaid groups in :func:`polar_glyphs` (black, red, blue, as the paper's Fig. 6).
+GROUP_COLOURS = ((0.0, 0.0, 0.0), (0.85, 0.1, 0.1), (0.1, 0.25, 0.9), (0.1, 0.6, 0.2))
+
+
+def polar_glyphs(
+    std: ArrayLike, *, cell: int = 32, scale: float | None = None, colours=GROUP_COLOURS
+) -> np.ndarray:
+    """Golovinskiy et al. Fig. 4 / Fig. 6: per tile, a closed polar curve whose radius in each
+    filter direction is that tile's standard deviation for the orientation band.
+
+    Args:
+        std: ``(K, grid, grid)`` one scale's per-tile std for its ``K`` orientations, or
+            ``(groups, K, grid, grid)`` to overlay several groups in colours (Fig. 6).
+        cell: pixels per tile.
+        scale: data value drawn with radius half a cell (default: the largest value).
+        colours: one RGB colour per group.
+
+    Returns:
+        ``(grid * cell, grid * cell, 3)`` float32 RGB image on white.
+    """
+    std = np.asarray(std, dtype=np.float64)
+    if std.ndim == 3:
+        std = std[None]
+    if std.ndim != 4 or std.shape[-1] != std.shape[-2]:
+        raise ValueError(f"std must be (K, g, g) or (groups, K, g, g), got {std.shape}")
+    groups, k, grid, _ = std.shape
+    if groups > len(colours):
+        raise ValueError(f"at most {len(colours)} groups can be overlaid, got {groups}")
+    scale = float(std.max()) if scale is None else float(scale)
+    size = grid * cell
+    out = np.ones((size, size, 3), np.float32)
+    out[::cell, :] = out[:, ::cell] = 0.85  # tile borders
+    # Radius as a smooth periodic function of angle: the band directions πb/K and their
+    # opposites, interpolated with the steerable filters' own cos^(K-1) basis (undirected).
+    angles = np.linspace(0, 2 * np.pi, 8 * cell, endpoint=False)
+    basis = np.abs(np.cos(angles[:, None] - np.pi * np.arange(k)[None] / k)) ** (k - 1)
+    basis /= basis.sum(axis=1, keepdims=True)
+    centres = (np.arange(grid) + 0.5) * cell
+    for g in range(groups):
+        radius = np.einsum("ab,bij->aij", basis, std[g]) / (scale or 1.0) * (0.5 * cell - 1)
+        ys = centres[None, :, None] - radius * np.sin(angles)[:, None, None]
+        xs = centres[None, None, :] + radius * np.cos(angles)[:, None, None]
+        ys = np.clip(np.round(ys).astype(int), 0, size - 1)
+        xs = np.clip(np.round(xs).astype(int), 0, size - 1)
+        out[ys.ravel(), xs.ravel()] = colours[g]
+    return out

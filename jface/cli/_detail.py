@@ -41,6 +41,34 @@ def register(sub: argparse._SubParsersAction) -> None:
     synth.add_argument("--method", choices=("std", "histogram"), default=None)
     synth.set_defaults(run=_synthesize)
 
+    db = sub.add_parser("db", help="statistics databases of many faces")
+    db_sub = db.add_subparsers(dest="db_command", required=True, metavar="ACTION")
+    build = db_sub.add_parser("build", help="analyse many maps into one population file")
+    build.add_argument("files", nargs="+", help="displacement maps, all of one size")
+    build.add_argument("--out", required=True, help="population file (.npz)")
+    build.add_argument(
+        "--metadata", help="JSON list (or JSON-lines file) of records, one per map, with 'id'"
+    )
+    build.add_argument("--grid", type=int, default=16)
+    build.add_argument("--scales", type=int, default=4)
+    build.add_argument("--bins", type=int, default=None)
+    build.add_argument("--chunk", type=int, default=8)
+    build.set_defaults(run=_db_build)
+    compare = db_sub.add_parser(
+        "compare", help="compare groups tile by tile (Golovinskiy et al. Fig. 6)"
+    )
+    compare.add_argument("db", help="population file")
+    compare.add_argument(
+        "--group",
+        action="append",
+        required=True,
+        metavar="NAME:FIELD=VALUE[,FIELD=LOW..HIGH]",
+        help="a group by record fields, e.g. 'young:age=20..30,sex=m' (repeat, 2-4 groups)",
+    )
+    compare.add_argument("--scale", type=int, default=1, help="pyramid scale to draw")
+    compare.add_argument("--out", required=True, help="output PNG (a .json table is written too)")
+    compare.set_defaults(run=_db_compare)
+
     draw = sub.add_parser("render", help="shaded relief PNG of a displacement map")
     draw.add_argument("map", help="map file")
     draw.add_argument("--out", required=True, help="output PNG")
@@ -95,6 +123,74 @@ def _synthesize(args: argparse.Namespace) -> None:
     out = io.write_exr(args.out, np.asarray(result), metadata=meta, protect=(args.start,))
     io.write_png(out.with_suffix(".png"), render.shade(result), metadata=meta)
     print(json.dumps({"out": str(out), "median_tile_std_error": float(np.median(error))}))
+
+
+def _read_records(path: str) -> list[dict]:
+    text = Path(path).read_text()
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError:
+        data = [json.loads(line) for line in text.splitlines() if line.strip()]
+    if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
+        raise ValueError(f"{path} must hold a JSON list of records (objects)")
+    return data
+
+
+def _db_build(args: argparse.Namespace) -> None:
+    records = _read_records(args.metadata) if args.metadata else None
+    population = detail.build_database(
+        args.files,
+        args.out,
+        records=records,
+        grid=args.grid,
+        n_scales=args.scales,
+        bins=args.bins,
+        chunk=args.chunk,
+    )
+    print(f"{len(population)} faces in {args.out}")
+
+
+def _parse_group(spec: str) -> tuple[str, dict]:
+    name, _, rules = spec.partition(":")
+    if not name or not rules:
+        raise ValueError(f"--group must look like NAME:FIELD=VALUE[,...], got {spec!r}")
+    criteria = {}
+    for rule in rules.split(","):
+        field, _, value = rule.partition("=")
+        if ".." in value:
+            low, high = value.split("..")
+            criteria[field] = (float(low), float(high))
+        else:
+            criteria[field] = value
+    return name, criteria
+
+
+def _db_compare(args: argparse.Namespace) -> None:
+    population = detail.Population.load(args.db)
+    groups = {}
+    for spec in args.group:
+        name, criteria = _parse_group(spec)
+        groups[name] = population.select(**criteria)
+    if len(groups) > len(render.GROUP_COLOURS):
+        raise ValueError(f"at most {len(render.GROUP_COLOURS)} groups, got {len(groups)}")
+    comparison = detail.compare_groups(groups)
+    k = population.stats.n_orientations
+    if not 0 <= args.scale < population.stats.n_scales:
+        raise ValueError(f"--scale must be in [0, {population.stats.n_scales - 1}]")
+    first = 1 + args.scale * k
+    ratios = np.asarray(comparison.ratios[:, first : first + k])
+    out = io.write_png(
+        args.out,
+        render.polar_glyphs(ratios),
+        metadata=io.provenance(db=Path(args.db).name, groups=args.group, scale=args.scale),
+    )
+    table = {
+        name: {"faces": len(groups[name]), "mean_ratio": float(ratios[i].mean())}
+        for i, name in enumerate(comparison.names)
+    }
+    table["reference"] = comparison.names[comparison.reference]
+    io.write_json(out.with_suffix(".json"), table)
+    print(json.dumps(table))
 
 
 def _render(args: argparse.Namespace) -> None:

@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from jface.io._files import atomic_path
+from jface.io._files import atomic_path, write_json
 
 #: A landmark is a vertex id of the scan or a 3-D point.
 Landmark = int | tuple[float, float, float]
@@ -292,7 +292,4 @@ def write_landmarks(
     for name, value in landmarks.items():
         arr = np.asarray(value)
         data[str(name)] = int(arr) if arr.ndim == 0 else [float(c) for c in arr.reshape(-1)]
-    path = Path(path)
-    with atomic_path(path, protect=protect) as tmp:
-        tmp.write_text(json.dumps(data, indent=1) + "\n")
-    return path
+    return write_json(path, data, protect=protect)
