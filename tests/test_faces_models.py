@@ -386,3 +386,27 @@ def test_bad_input(unchecked, fa_lfw, lfw):
         faces.fit_bilinear(lfw[:, None], 4)
     with pytest.raises(ValueError, match="h must have shape"):
         faces.reconstruct(model, np.zeros(3))
+
+
+# --- command line ----------------------------------------------------------------------------
+
+
+def test_cli_train_and_sample(tmp_path, monkeypatch, lfw, capsys):
+    import jface.cli
+    from jface.io import read_image, write_png
+
+    monkeypatch.setattr(jface.cli, "COMMAND_MODULES", ("jface.cli._faces",))
+    paths = [str(write_png(tmp_path / f"face{i}.png", lfw[i])) for i in range(12)]
+    model = tmp_path / "model.npz"
+    args = ["faces", "train", *paths, "--out", str(model), "--factors", "3", "--iters", "5"]
+    assert jface.cli.main(args) == 0
+    loaded, meta = faces.load_model(model)
+    assert loaded.shape == (25, 25) and meta["n_images"] == 12 and meta["n_factors"] == 3
+    out = tmp_path / "samples"
+    assert jface.cli.main(["faces", "sample", str(model), "--n", "5", "--out", str(out)]) == 0
+    assert len(list(out.glob("sample_*.png"))) == 5
+    assert read_image(out / "grid.png").shape == (2 * 26 + 1, 3 * 26 + 1)  # 3 columns, 2 rows
+    write_png(tmp_path / "small.png", lfw[0, :20, :20])
+    bad = ["faces", "train", paths[0], str(tmp_path / "small.png"), "--out", str(tmp_path / "x")]
+    assert jface.cli.main(bad) == 2
+    assert "all images must have one size" in capsys.readouterr().err
