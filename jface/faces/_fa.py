@@ -31,7 +31,21 @@ from jface import _checks
 Form = Literal["exact", "ml"]
 
 
-class FactorAnalyser(eqx.Module):
+class FactorDims:
+    """Sizes read off ``factors`` (``(..., d, q)``), shared by the factor models."""
+
+    factors: Array
+
+    @property
+    def n_features(self) -> int:
+        return self.factors.shape[-2]
+
+    @property
+    def n_factors(self) -> int:
+        return self.factors.shape[-1]
+
+
+class FactorAnalyser(FactorDims, eqx.Module):
     """A factor analyser ``x = μ + F h + ε`` over images of a fixed shape (Eq. 1–3).
 
     Attributes:
@@ -45,14 +59,6 @@ class FactorAnalyser(eqx.Module):
     factors: Float[Array, "*batch d q"]
     noise: Float[Array, "*batch d"]
     shape: tuple[int, ...] = eqx.field(static=True)
-
-    @property
-    def n_features(self) -> int:
-        return self.factors.shape[-2]
-
-    @property
-    def n_factors(self) -> int:
-        return self.factors.shape[-1]
 
 
 class Posterior(eqx.Module):

@@ -14,6 +14,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from jface.faces._fa import (
     FactorAnalyser,
+    FactorDims,
     Posterior,
     fa_posterior_flat,
     gaussian_log_likelihood,
@@ -21,7 +22,7 @@ from jface.faces._fa import (
 )
 
 
-class MixtureOfFactorAnalysers(eqx.Module):
+class MixtureOfFactorAnalysers(FactorDims, eqx.Module):
     """``K`` factor analysers with mixing weights (§4 of the paper).
 
     Attributes:
@@ -41,14 +42,6 @@ class MixtureOfFactorAnalysers(eqx.Module):
     @property
     def n_components(self) -> int:
         return self.weights.shape[-1]
-
-    @property
-    def n_features(self) -> int:
-        return self.factors.shape[-2]
-
-    @property
-    def n_factors(self) -> int:
-        return self.factors.shape[-1]
 
 
 class MixturePosterior(eqx.Module):
