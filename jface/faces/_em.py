@@ -170,27 +170,33 @@ def kmeans(key: Array, x: Float[Array, "n d"], k: int, n_iter: int) -> Float[Arr
 Mixture = tuple[Array, Array, Array, Array]  # log weights (K,), means (K,d), F (K,d,q), Σ (K,d)
 
 
-def _component_e_step(x, x2, mean, factors, noise):
-    """Per-image log-likelihood, posterior means and the shared posterior covariance.
-
-    Works from ``x`` and the precomputed ``x²`` (both ``(n, d)``) through matrix products only,
-    so no ``(n, d)`` temporary is made per component and iteration.
-    """
-    d, q = factors.shape
-    inv = 1.0 / noise
-    a = factors * inv[:, None]
-    chol = jnp.linalg.cholesky(jnp.eye(q, dtype=x.dtype) + factors.T @ a)
-    proj = x @ jnp.concatenate([a, (mean * inv)[:, None]], axis=1)  # (n, q + 1)
-    z = proj[:, :q] - mean @ a
-    eh = chol_solve(chol, z.T).T
-    quad = x2 @ inv - 2.0 * proj[:, q] + jnp.sum(mean * mean * inv) - jnp.sum(z * eh, axis=1)
-    const = d * _log_2pi(x.dtype) + jnp.sum(jnp.log(noise)) + log_det_chol(chol)
-    return -0.5 * (const + quad), eh, chol_solve(chol, jnp.eye(q, dtype=x.dtype))
-
-
 def _responsibilities(x, x2, params: Mixture):
+    """Log-likelihood, responsibilities ``(K, n)``, posterior means ``(K, n, q)`` and the
+    per-component posterior covariances ``(K, q, q)`` of complete images.
+
+    Works from ``x`` and the precomputed ``x²`` (both ``(n, d)``) through one matrix product
+    for all components (``x @ [A_1, μ_1/Σ_1, …, A_K, μ_K/Σ_K]``, ``A_k = Σ_k⁻¹F_k``), so no
+    ``(n, d)`` temporary is made per component and iteration.
+    """
     log_w, means, factors, noise = params
-    ll, eh, cov = jax.lax.map(lambda p: _component_e_step(x, x2, *p), (means, factors, noise))
+    k, d, q = factors.shape
+    eye = jnp.eye(q, dtype=x.dtype)
+    inv = 1.0 / noise
+    a = factors * inv[..., None]
+    chol = jnp.linalg.cholesky(eye + jnp.einsum("kdq,kdp->kqp", factors, a))
+    stacked = jnp.concatenate([a, (means * inv)[..., None]], axis=-1)  # (K, d, q+1)
+    proj = (x @ stacked.transpose(1, 0, 2).reshape(d, k * (q + 1))).reshape(-1, k, q + 1)
+    z = proj[..., :q].transpose(1, 0, 2) - jnp.einsum("kd,kdq->kq", means, a)[:, None]
+    eh = jax.vmap(lambda c, zk: chol_solve(c, zk.T).T)(chol, z)  # (K, n, q)
+    quad = (
+        (x2 @ inv.T).T
+        - 2.0 * proj[..., q].T
+        + jnp.sum(means * means * inv, axis=1)[:, None]
+        - jnp.sum(z * eh, axis=2)
+    )
+    const = d * _log_2pi(x.dtype) + jnp.sum(jnp.log(noise), axis=1) + log_det_chol(chol)
+    ll = -0.5 * (const[:, None] + quad)
+    cov = jax.vmap(lambda c: chol_solve(c, eye))(chol)
     joint = log_w[:, None] + ll
     lse = jax.scipy.special.logsumexp(joint, axis=0)
     return jnp.mean(lse), jnp.exp(joint - lse), eh, cov
@@ -198,33 +204,25 @@ def _responsibilities(x, x2, params: Mixture):
 
 def mixture_step(x: Array, x2: Array, floor: Array, params: Mixture) -> tuple[Array, Mixture]:
     """One EM iteration of a mixture of factor analysers on complete images ``x`` (n, d), with
-    ``x2 = x²`` precomputed."""
+    ``x2 = x²`` precomputed: the joint update of each component's ``[F_k, μ_k]`` and ``Σ_k``
+    (Ghahramani & Hinton 1997)."""
     _, means, factors, noise = params
-    n = x.shape[0]
-    q = factors.shape[-1]
+    n, d = x.shape
+    k, _, q = factors.shape
     ll, resp, eh, cov = _responsibilities(x, x2, params)
     counts = jnp.sum(resp, axis=1)
-    sq = (resp @ x2).T  # (d, K): Σ_i r_ik x_i²
-
-    def m_step(args):
-        r_k, eh_k, cov_k, n_k, sq_k, mean_k, f_k, noise_k = args
-        eht = jnp.concatenate([eh_k, jnp.ones((n, 1), x.dtype)], axis=1)
-        weighted = r_k[:, None] * eht
-        sx = (weighted.T @ x).T  # (d, q+1)
-        p = eht.T @ weighted
-        p = p.at[:q, :q].add(n_k * cov_k)
-        ft = jnp.linalg.solve(p, sx.T).T
-        new_noise = jnp.maximum((sq_k - jnp.sum(ft * sx, axis=1)) / n_k, floor)
-        ok = n_k > q + 1.0  # a starved component keeps its parameters (still a GEM step)
-        return (
-            jnp.where(ok, ft[:, q], mean_k),
-            jnp.where(ok, ft[:, :q], f_k),
-            jnp.where(ok, new_noise, noise_k),
-        )
-
-    new_means, new_factors, new_noise = jax.lax.map(
-        m_step, (resp, eh, cov, counts, sq.T, means, factors, noise)
-    )
+    eht = jnp.concatenate([eh, jnp.ones((k, n, 1), x.dtype)], axis=2)  # (K, n, q+1)
+    weighted = resp[..., None] * eht
+    sx = (weighted.transpose(0, 2, 1).reshape(k * (q + 1), n) @ x).reshape(k, q + 1, d)
+    p = jnp.einsum("kni,knj->kij", eht, weighted)
+    p = p.at[:, :q, :q].add(counts[:, None, None] * cov)
+    ft = jnp.linalg.solve(p, sx)  # (K, q+1, d): rows of [F_kᵀ; μ_kᵀ]
+    sq = resp @ x2  # (K, d): Σ_i r_ik x_i²
+    new_noise = jnp.maximum((sq - jnp.sum(ft * sx, axis=1)) / counts[:, None], floor)
+    ok = (counts > q + 1.0)[:, None]  # a starved component keeps its parameters (a GEM step)
+    new_means = jnp.where(ok, ft[:, q], means)
+    new_factors = jnp.where(ok[..., None], ft[:, :q].transpose(0, 2, 1), factors)
+    new_noise = jnp.where(ok, new_noise, noise)
     tiny = jnp.asarray(jnp.finfo(x.dtype).tiny, x.dtype)
     log_w = jnp.log(jnp.maximum(counts, tiny) / n)
     return ll, (log_w, new_means, new_factors, new_noise)
