@@ -28,6 +28,8 @@ import numpy as np
 
 from jface import _checks
 
+__all__ = ["Fragments", "framing", "project", "rasterize", "render", "rotation", "vertex_normals"]
+
 #: Largest number of candidate fragments processed in one array operation.
 _CHUNK = 1 << 22
 
