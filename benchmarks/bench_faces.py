@@ -10,12 +10,12 @@ factor analysers. One JSON line per case; compile time is reported apart from th
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import report
 from scipy.ndimage import shift, zoom
 from skimage import data
 from sklearn.decomposition import FactorAnalysis
@@ -53,10 +53,6 @@ def timed(fn, repeat: int = 1):
     return result, best, first - best
 
 
-def emit(**fields) -> None:
-    print(json.dumps(fields), flush=True)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=1500)
@@ -82,13 +78,12 @@ def main() -> None:
     ref.components_ = np.asarray(model64.factors).T
     ref.noise_variance_ = np.asarray(model64.noise)
     ref.mean_ = np.asarray(model64.mean)
-    emit(
-        case=f"fit factor analyser {args.n}x{d}, 8 factors, 40 iterations",
-        jface_s=round(t_fit, 4),
+    report(
+        f"fit factor analyser {args.n}x{d}, 8 factors, 40 iterations",
+        t_fit,
+        "sklearn FactorAnalysis (default tol: stops after n_iter_ iterations)",
+        t_sk,
         jface_compile_s=round(c_fit, 2),
-        reference="sklearn FactorAnalysis (default tol: stops after n_iter_ iterations)",
-        reference_s=round(t_sk, 4),
-        ratio=round(t_sk / t_fit, 2),
         reference_n_iter=int(sk.n_iter_),
         jface_loglik=round(float(ref.score(flat64)), 3),
         reference_loglik=round(float(sk_ll), 3),
@@ -99,13 +94,12 @@ def main() -> None:
     start = time.perf_counter()
     ref_ll = ref.score_samples(flat64)
     t_ref = time.perf_counter() - start
-    emit(
-        case=f"log-likelihood of {args.n} images, d={d}",
-        jface_s=round(t_ll, 4),
+    report(
+        f"log-likelihood of {args.n} images, d={d}",
+        t_ll,
+        "sklearn FactorAnalysis.score_samples (forms the d×d covariance)",
+        t_ref,
         jface_compile_s=round(c_ll, 2),
-        reference="sklearn FactorAnalysis.score_samples (forms the d×d covariance)",
-        reference_s=round(t_ref, 4),
-        ratio=round(t_ref / t_ll, 1),
         max_abs_diff_nats=float(np.max(np.abs(np.asarray(lls, np.float64) - ref_ll))),
     )
 
@@ -114,13 +108,12 @@ def main() -> None:
     start = time.perf_counter()
     gm.fit(flat)
     t_gm = time.perf_counter() - start
-    emit(
-        case=f"fit mixture of 5 factor analysers {args.n}x{d}, 8 factors, 40 iterations",
-        jface_s=round(t_mix, 4),
+    report(
+        f"fit mixture of 5 factor analysers {args.n}x{d}, 8 factors, 40 iterations",
+        t_mix,
+        "sklearn GaussianMixture(5, diag), 40 iterations (no factors: a simpler model)",
+        t_gm,
         jface_compile_s=round(c_mix, 2),
-        reference="sklearn GaussianMixture(5, diag), 40 iterations (no factors: a simpler model)",
-        reference_s=round(t_gm, 4),
-        ratio=round(t_gm / t_mix, 2),
         jface_loglik=round(float(mix.log_likelihood[-1]), 3),
         reference_loglik=round(float(gm.score(flat)), 3),
         jface_em_monotone=bool(np.all(np.diff(np.asarray(mix.log_likelihood)) >= -1e-2)),

@@ -120,14 +120,15 @@ def pca_init(
 
 
 def _orthonormal(y: Array) -> Array:
-    """Orthonormal basis of the columns of a tall ``y`` (CholeskyQR2: two Cholesky passes on
-    the small Gram matrix; much faster than a Householder QR on the CPU)."""
-    k = y.shape[1]
-    for _ in range(2):
-        gram = y.T @ y
-        jitter = 1e-10 * jnp.trace(gram) / k + jnp.finfo(y.dtype).tiny
-        chol = jnp.linalg.cholesky(gram + jitter * jnp.eye(k, dtype=y.dtype))
-        y = jax.scipy.linalg.solve_triangular(chol, y.T, lower=True).T
+    """Orthonormal basis of the columns of a tall ``y`` through the eigendecomposition of its
+    small Gram matrix (much faster than a Householder QR on the CPU). Directions of numerically
+    zero weight — rank-deficient blocks, e.g. a cluster with fewer members than columns — become
+    zero columns instead of noise."""
+    for _ in range(2):  # a second pass restores orthogonality lost to rounding
+        evals, evecs = jnp.linalg.eigh(y.T @ y)
+        keep = evals > 1e3 * jnp.finfo(y.dtype).eps * jnp.maximum(evals[-1], 0.0)
+        scale = jnp.where(keep, 1.0 / jnp.sqrt(jnp.where(keep, evals, 1.0)), 0.0)
+        y = y @ (evecs * scale[None, :])
     return y
 
 

@@ -3,7 +3,7 @@
 
 from jface.io._arrays import load_arrays, save_arrays
 from jface.io._exr import ExrImage, read_exr, read_map, write_exr
-from jface.io._files import atomic_path
+from jface.io._files import atomic_path, write_json
 from jface.io._images import read_image, write_png
 from jface.io._provenance import provenance
 
@@ -17,5 +17,6 @@ __all__ = [
     "read_map",
     "save_arrays",
     "write_exr",
+    "write_json",
     "write_png",
 ]

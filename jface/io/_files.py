@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from collections.abc import Iterable, Iterator
@@ -28,8 +29,23 @@ def atomic_path(
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual mode
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_json(path: str | os.PathLike, data: object, *, protect=()) -> Path:
+    """Write JSON (indented) atomically."""
+    path = Path(path)
+    with atomic_path(path, protect=protect) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+    return path
