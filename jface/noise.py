@@ -25,6 +25,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.typing import ArrayLike
 from jaxtyping import Array, Float, UInt32
 
@@ -96,7 +97,7 @@ def _check_common(frequency, octaves, persistence, lacunarity, periodic):
     persistence = _checks.real(persistence, "persistence", low=0.0, high=1.0, open_low=True)
     lacunarity = _checks.real(lacunarity, "lacunarity", low=1.0, high=16.0)
     if not _checks.is_traced(frequency):
-        freq = _checks.real(float(jnp.asarray(frequency)), "frequency", low=0.0, open_low=True)
+        freq = _checks.real(float(np.asarray(frequency)), "frequency", low=0.0, open_low=True)
         if periodic and abs(freq - round(freq)) > 1e-6:
             raise ValueError(
                 f"frequency must be a whole number of lattice cells when periodic=True, got {freq}"

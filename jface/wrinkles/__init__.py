@@ -16,8 +16,10 @@ from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
 from jface.wrinkles._params import (
     PARAMETER_RANGES,
     WrinkleParams,
+    load_params,
     params_from_json,
     params_to_json,
+    save_params,
     stack_params,
 )
 from jface.wrinkles._sampling import Pores, default_capacity, make_pores, sample_pores
@@ -42,12 +44,14 @@ __all__ = [
     "default_capacity",
     "graph_spec",
     "half_edge_scores",
+    "load_params",
     "make_pores",
     "orientation_density",
     "params_from_json",
     "params_to_json",
     "perlin_variation",
     "sample_pores",
+    "save_params",
     "simulate",
     "stack_params",
 ]

@@ -122,16 +122,25 @@ def _bucket(cell_ids, n_cells, cap):
     """Cell table ``(n_cells + 1, cap)`` of item indices (sentinel = number of items; row
     ``n_cells`` is empty) and an overflow flag. ``cell_ids`` holds ``n_cells`` for invalid items.
     Slots are filled by ``cap`` rounds of scatter-min (no sort: XLA's CPU sort is slow)."""
-    n = cell_ids.shape[0]
+    table, pending = _scatter_rounds(cell_ids, cell_ids < n_cells, n_cells, cap)
+    return table.at[n_cells].set(cell_ids.shape[0]), jnp.any(pending)
+
+
+def _scatter_rounds(targets, pending, n_rows, cap):
+    """Table ``(n_rows + 1, cap)``: row ``r`` lists (ascending) up to ``cap`` items whose target
+    is ``r`` (sentinel: the number of items); also returns the items left over."""
+    n = targets.shape[0]
     ids = jnp.arange(n, dtype=jnp.int32)
-    pending = cell_ids < n_cells
-    columns = []
-    for _ in range(cap):
-        target = jnp.where(pending, cell_ids, n_cells)
-        winner = jnp.full(n_cells + 1, n, jnp.int32).at[target].min(ids).at[n_cells].set(n)
-        columns.append(winner)
-        pending &= winner[cell_ids] != ids
-    return jnp.stack(columns, axis=-1), jnp.any(pending)
+
+    def one(q, carry):
+        table, pending = carry
+        row = jnp.where(pending, targets, n_rows)
+        winner = jnp.full(n_rows + 1, n, jnp.int32).at[row].min(ids)
+        table = lax.dynamic_update_slice_in_dim(table, winner[:, None], q, axis=1)
+        return table, pending & (winner[jnp.minimum(targets, n_rows)] != ids)
+
+    table = jnp.full((n_rows + 1, cap), n, jnp.int32)
+    return lax.fori_loop(0, cap, one, (table, pending))
 
 
 def _window(cell_xy, grid, reach, periodic):
@@ -173,13 +182,12 @@ def _map_first(f, count, total, chunk):
     return jax.tree.map(lambda o: o[:total], outs)
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "periodic"))
-def _topology(positions, mask, count, *, spec: GraphSpec, periodic: bool):
+@functools.partial(jax.jit, static_argnames=("k", "deg", "grid", "cell_cap", "reach", "periodic"))
+def _topology(positions, mask, count, *, k, deg, grid, cell_cap, reach, periodic):
     n = positions.shape[0]
-    k, grid, reach, deg = spec.k, spec.knn_grid, spec.knn_reach, spec.max_degree
     cell = _cells(positions, grid)
     cid = jnp.where(mask, cell[:, 1] * grid + cell[:, 0], grid * grid)
-    table, cell_overflow = _bucket(cid, grid * grid, spec.knn_cell_capacity)
+    table, cell_overflow = _bucket(cid, grid * grid, cell_cap)
     pos_table = jnp.concatenate([positions, jnp.zeros((1, 2), positions.dtype)])[table]
 
     def query(i):  # one pore
@@ -189,7 +197,7 @@ def _topology(positions, mask, count, *, spec: GraphSpec, periodic: bool):
         d2 = jnp.sum(delta * delta, axis=-1)
         d2 = jnp.where((cand == n) | (cand == i), jnp.inf, d2)
         neg, idx = lax.top_k(-d2, k)
-        found = jnp.sum(jnp.isfinite(d2))
+        found = jnp.sum(jnp.isfinite(d2)).astype(jnp.int32)
         return jnp.where(jnp.isfinite(neg), cand[idx], n), -neg, found
 
     nbr, nd2, found = _map_first(query, count, n, _CHUNK)
@@ -209,35 +217,29 @@ def _topology(positions, mask, count, *, spec: GraphSpec, periodic: bool):
     back_slot = jnp.argmax(back, axis=-1)
     eid = jnp.where(creates, eid, eid[nbr_safe, back_slot])
     edge_count = jnp.sum(creates).astype(jnp.int32)
-    edge_a = jnp.zeros(n_edges, jnp.int32).at[eid_flat].set(jnp.minimum(i, nbr).reshape(-1), mode="drop")
-    edge_b = jnp.zeros(n_edges, jnp.int32).at[eid_flat].set(jnp.maximum(i, nbr).reshape(-1), mode="drop")
-    edge_mask = jnp.arange(n_edges) < edge_count
+    edge_a = (
+        jnp.zeros(n_edges, jnp.int32).at[eid_flat].set(jnp.minimum(i, nbr).reshape(-1), mode="drop")
+    )
+    edge_b = (
+        jnp.zeros(n_edges, jnp.int32).at[eid_flat].set(jnp.maximum(i, nbr).reshape(-1), mode="drop")
+    )
+    edge_mask = jnp.arange(n_edges, dtype=jnp.int32) < edge_count
     edge_delta = _wrap(positions[edge_b] - positions[edge_a], periodic)
     edge_delta = jnp.where(edge_mask[:, None], edge_delta, 0.0)
 
     # half-edges: the pore's own k entries, then the entries of pores that list it unmirrored
     extra = (valid & ~mirrored).reshape(-1)
     target = nbr_safe.reshape(-1)
-    flat_ids = jnp.arange(n * k, dtype=jnp.int32)
-    pending = extra
-    extra_cols = []
-    for _ in range(deg - k):
-        slot_of = jnp.where(pending, target, n)
-        winner = jnp.full(n + 1, n * k, jnp.int32).at[slot_of].min(flat_ids)[:n]
-        extra_cols.append(winner)
-        pending &= winner[target] != flat_ids
+    extra_tab, pending = _scatter_rounds(target, extra, n, max(deg - k, 0))
     degree_overflow = jnp.any(pending)
     src_flat = i.reshape(-1)
     eid_all = eid.reshape(-1)
-    if extra_cols:
-        extra_tab = jnp.stack(extra_cols, axis=-1)  # (n, deg - k) entry ids
-        extra_ok = extra_tab < n * k
-        extra_safe = jnp.where(extra_ok, extra_tab, 0)
-        half_target = jnp.concatenate([nbr_safe, src_flat[extra_safe]], axis=1)
-        half_edge = jnp.concatenate([eid, eid_all[extra_safe]], axis=1)
-        half_mask = jnp.concatenate([valid, extra_ok], axis=1)
-    else:
-        half_target, half_edge, half_mask = nbr_safe, eid, valid
+    extra_tab = extra_tab[:n]  # (n, deg - k) entry ids
+    extra_ok = extra_tab < n * k
+    extra_safe = jnp.where(extra_ok, extra_tab, 0)
+    half_target = jnp.concatenate([nbr_safe, src_flat[extra_safe]], axis=1)
+    half_edge = jnp.concatenate([eid, eid_all[extra_safe]], axis=1)
+    half_mask = jnp.concatenate([valid, extra_ok], axis=1)
     half_target = jnp.where(half_mask, half_target, 0)
     half_edge = jnp.where(half_mask, half_edge, 0)
     half_delta = _wrap(positions[half_target] - positions[:, None], periodic)
@@ -274,17 +276,18 @@ def _crosses(p2, q1, q2):
     return opposite(cross(p2, q1), cross(p2, q2)) & opposite(cross(e, -q1), cross(e, p2 - q1))
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "periodic"))
-def _crossing_lists(positions, edge_nodes, edge_delta, edge_mask, edge_count, *, spec, periodic):
+@functools.partial(jax.jit, static_argnames=("cap", "grid", "cell_cap", "periodic"))
+def _crossing_lists(
+    positions, edge_nodes, edge_delta, edge_mask, edge_count, *, cap, grid, cell_cap, periodic
+):
     n_edges = edge_nodes.shape[0]
-    grid, cap = spec.edge_grid, spec.max_crossings
     pa = positions[edge_nodes[:, 0]]
     mid = pa + 0.5 * edge_delta
     if periodic:
         mid = jnp.mod(mid, 1.0)
     cell = _cells(mid, grid)
     cid = jnp.where(edge_mask, cell[:, 1] * grid + cell[:, 0], grid * grid)
-    table, cell_overflow = _bucket(cid, grid * grid, spec.edge_cell_capacity)
+    table, cell_overflow = _bucket(cid, grid * grid, cell_cap)
     # per-cell data inline, so a query reads contiguous blocks
     nodes_t = jnp.concatenate([edge_nodes, jnp.full((1, 2), -1, edge_nodes.dtype)])[table]
     geom = jnp.concatenate([pa, edge_delta], axis=1)
@@ -305,7 +308,7 @@ def _crossing_lists(positions, edge_nodes, edge_delta, edge_mask, edge_count, *,
 
     lists, counts = _map_first(query, edge_count, n_edges, _CHUNK)
     counts = jnp.where(edge_mask, counts, 0)
-    cmask = jnp.arange(cap) < counts[:, None]
+    cmask = jnp.arange(cap, dtype=jnp.int32) < counts[:, None]
     return jnp.where(cmask, lists, 0), cmask, cell_overflow, jnp.max(counts)
 
 
@@ -360,8 +363,12 @@ def graph_spec(
         edge_cell_capacity = max(8, math.ceil(4.0 * k * (longest * 0.5 * 1.0 / r_lo) ** 2 / 2))
     return GraphSpec(
         k=k,
-        max_degree=2 * k + 4 if max_degree is None else _checks.integer(max_degree, "max_degree", low=1),
-        max_crossings=4 * k if max_crossings is None else _checks.integer(max_crossings, "max_crossings", low=1),
+        max_degree=2 * k + 4
+        if max_degree is None
+        else _checks.integer(max_degree, "max_degree", low=1),
+        max_crossings=4 * k
+        if max_crossings is None
+        else _checks.integer(max_crossings, "max_crossings", low=1),
         knn_grid=grid,
         knn_cell_capacity=cell_capacity,
         knn_reach=reach,
@@ -398,15 +405,25 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
         spec = graph_spec(pores, k=k)
     if not isinstance(spec, GraphSpec):
         raise TypeError(f"spec must be a GraphSpec, got {_checks.describe(spec)}")
-    topo, flags = _topology(
-        pores.positions, pores.mask, pores.count, spec=spec, periodic=pores.periodic
-    )
+    while True:
+        topo, flags = _topology(
+            pores.positions, pores.mask, pores.count, k=spec.k, deg=spec.max_degree,
+            grid=spec.knn_grid, cell_cap=spec.knn_cell_capacity, reach=spec.knn_reach,
+            periodic=pores.periodic,
+        )  # fmt: skip
+        if not auto or _checks.is_traced(flags["inexact"]) or not bool(flags["inexact"]):
+            break
+        if spec.knn_reach >= spec.knn_grid:
+            break
+        spec = spec._replace(knn_reach=min(2 * spec.knn_reach, spec.knn_grid))  # sparse pores
     if not _checks.is_traced(topo["edge_length"]) and auto:
         # size the midpoint grid from the longest edge actually present
         longest = max(float(jnp.max(topo["edge_length"])), 1e-6)
         edge_grid = max(1, math.floor(2.0 / longest))
         if pores.periodic and edge_grid < 5:
-            raise ValueError("the pores are too sparse for a periodic graph (edges longer than 0.4)")
+            raise ValueError(
+                "the pores are too sparse for a periodic graph (edges longer than 0.4)"
+            )
         mid = np.asarray(pores.positions)[np.asarray(topo["edge_nodes"][:, 0])] + 0.5 * np.asarray(
             topo["edge_delta"]
         )
@@ -419,7 +436,8 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
         )
     crossings, cmask, edge_overflow, max_cross = _crossing_lists(
         pores.positions, topo["edge_nodes"], topo["edge_delta"], topo["edge_mask"],
-        topo["edge_count"], spec=spec, periodic=pores.periodic,
+        topo["edge_count"], cap=spec.max_crossings, grid=spec.edge_grid,
+        cell_cap=spec.edge_cell_capacity, periodic=pores.periodic,
     )  # fmt: skip
     flags["edge_cell"] = edge_overflow
     flags["crossings"] = max_cross > spec.max_crossings

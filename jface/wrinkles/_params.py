@@ -117,10 +117,12 @@ class WrinkleParams(eqx.Module):
             if _checks.is_traced(value):
                 continue
             lo, hi = PARAMETER_RANGES[name]
-            vmin, vmax = float(jnp.min(value)), float(jnp.max(value))
+            vmin, vmax = float(np.min(value)), float(np.max(value))
             if not (np.isfinite(vmin) and np.isfinite(vmax)) or vmin < lo or vmax > hi:
                 got = f"{vmin}" if value.ndim == 0 else f"values in [{vmin}, {vmax}]"
-                raise ValueError(f"WrinkleParams.{name} must be in [{lo}, {hi}] (Table 1), got {got}")
+                raise ValueError(
+                    f"WrinkleParams.{name} must be in [{lo}, {hi}] (Table 1), got {got}"
+                )
 
     def replace(self, **changes: Any) -> WrinkleParams:
         """A copy with some fields changed (validated again)."""
@@ -149,6 +151,25 @@ class WrinkleParams(eqx.Module):
 
 
 _NAMES = tuple(f.name for f in dataclasses.fields(WrinkleParams))
+
+
+def save_params(path, levels) -> None:
+    """Write one level or a list of levels (coarse to fine) to a JSON file, atomically."""
+    from jface.io import write_json
+
+    write_json(path, json.loads(params_to_json(levels)))
+
+
+def load_params(path) -> list[WrinkleParams]:
+    """Levels (coarse to fine) from a file written by :func:`save_params`.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a WrinkleParams document, or values out of range.
+    """
+    from jface.io import read_json
+
+    return params_from_json(json.dumps(read_json(path)))
 
 
 def params_to_json(levels: WrinkleParams | list[WrinkleParams] | tuple[WrinkleParams, ...]) -> str:

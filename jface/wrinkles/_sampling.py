@@ -94,7 +94,7 @@ def make_pores(
     pos = _checks.float_array(positions, "positions", ndim=2, dtype=jnp.float32)
     if pos.shape[1] != 2:
         raise ValueError(f"positions must have shape (n, 2), got {_checks.describe(pos)}")
-    if not _checks.is_traced(pos) and bool(jnp.any((pos < 0) | (pos > 1))):
+    if not _checks.is_traced(pos) and bool(np.any((np.asarray(pos) < 0) | (np.asarray(pos) > 1))):
         raise ValueError("positions must lie in the unit square [0, 1]²")
     n = pos.shape[0]
     capacity = n if capacity is None else _checks.integer(capacity, "capacity", low=n)
@@ -106,7 +106,7 @@ def make_pores(
         positions=jnp.pad(pos, ((0, pad), (0, 0))),
         radius=jnp.pad(rad, (0, pad)),
         level=jnp.zeros(capacity, jnp.int32),
-        mask=jnp.arange(capacity) < n,
+        mask=jnp.arange(capacity, dtype=jnp.int32) < n,
         count=jnp.asarray(n, jnp.int32),
         periodic=bool(periodic),
     )
@@ -128,12 +128,13 @@ def grid_layout(r_lo: float, r_hi: float) -> tuple[int, int]:
 def default_capacity(d: Any, radius_map: Any = None, *, initial: int = 0) -> int:
     """An upper bound of the pore count for the local distance ``d · R`` (hexagonal packing
     bound ``2/(√3 r²)`` per unit area, integrated over the map, plus a boundary margin)."""
-    xy = (jnp.stack(jnp.meshgrid(*(jnp.arange(64) + 0.5,) * 2), -1) / 64).astype(jnp.float32)
-    r = at(jnp.asarray(d, jnp.float32), xy, periodic=False)
+    grid = (np.arange(64, dtype=np.float32) + 0.5) / 64
+    xy = jnp.asarray(np.stack(np.meshgrid(grid, grid), -1))
+    r = np.asarray(at(jnp.asarray(d, jnp.float32), xy, periodic=False), np.float64)
     if radius_map is not None:
-        r = r * at(jnp.asarray(radius_map, jnp.float32), xy, periodic=False)
-    dens = float(jnp.mean(1.0 / r**2)) * 2.0 / math.sqrt(3.0)
-    return int(math.ceil(1.05 * dens + 4.0 / float(jnp.min(r)) + 16)) + int(initial)
+        r = r * np.asarray(at(jnp.asarray(radius_map, jnp.float32), xy, periodic=False))
+    dens = float(np.mean(1.0 / r**2)) * 2.0 / math.sqrt(3.0)
+    return math.ceil(1.05 * dens + 4.0 / float(np.min(r)) + 16) + int(initial)
 
 
 def sample_pores(
@@ -184,16 +185,16 @@ def sample_pores(
     if d.ndim not in (0, 2):
         raise ValueError(f"d must be a scalar or a 2-D texture (H, W), got {_checks.describe(d)}")
     lo, hi = PARAMETER_RANGES["d"]
-    if not _checks.is_traced(d) and (float(jnp.min(d)) < lo or float(jnp.max(d)) > hi):
+    if not _checks.is_traced(d) and (float(np.min(d)) < lo or float(np.max(d)) > hi):
         raise ValueError(
             f"d (α_d) must be in [{lo}, {hi}] (Table 1), got values in "
-            f"[{float(jnp.min(d))}, {float(jnp.max(d))}]"
+            f"[{float(np.min(d))}, {float(np.max(d))}]"
         )
     if radius_map is not None:
         radius_map = _checks.float_array(radius_map, "radius_map", ndim=2, dtype=jnp.float32)
-        if not _checks.is_traced(radius_map) and float(jnp.min(radius_map)) <= 0:
+        if not _checks.is_traced(radius_map) and float(np.min(radius_map)) <= 0:
             raise ValueError(
-                f"radius_map must be positive everywhere, got minimum {float(jnp.min(radius_map))}"
+                f"radius_map must be positive everywhere, got minimum {float(np.min(radius_map))}"
             )
     if initial is not None:
         if not isinstance(initial, Pores):
@@ -208,10 +209,10 @@ def sample_pores(
                 "radius_range=(r_lo, r_hi) is required when d or radius_map are traced "
                 "(under jit/vmap); it fixes the sampling grid"
             )
-        rmap = jnp.ones(()) if radius_map is None else radius_map
+        rmap = np.ones(()) if radius_map is None else np.asarray(radius_map)
         radius_range = (
-            float(jnp.min(d)) * float(jnp.min(rmap)),
-            float(jnp.max(d)) * float(jnp.max(rmap)),
+            float(np.min(d)) * float(np.min(rmap)),
+            float(np.max(d)) * float(np.max(rmap)),
         )
     r_lo = _checks.real(radius_range[0], "radius_range[0]", low=0.0, open_low=True)
     r_hi = _checks.real(radius_range[1], "radius_range[1]", low=r_lo)
@@ -222,7 +223,9 @@ def sample_pores(
     if capacity is None:
         if traced:
             raise ValueError("capacity is required when d or radius_map are traced")
-        capacity = default_capacity(d, radius_map, initial=0 if initial is None else initial.capacity)
+        capacity = default_capacity(
+            d, radius_map, initial=0 if initial is None else initial.capacity
+        )
     capacity = _checks.integer(capacity, "capacity", low=1)
     if initial is not None and initial.capacity > capacity:
         raise ValueError(
@@ -262,17 +265,31 @@ def sample_pores(
     return eqx.tree_at(lambda p: p.positions, pores, positions)
 
 
-@functools.partial(jax.jit, static_argnames=("g", "k", "capacity", "periodic"))
+def _radius_cells(d, radius_map, xy, g, periodic):
+    r = at(d, xy, periodic=periodic)
+    if radius_map is not None:
+        r = r * at(radius_map, xy, periodic=periodic)
+    return r * g
+
+
 def _sample(key, d, radius_map, init, new_level, r_lo, r_hi, *, g, k, capacity, periodic):
-    s = k + 1
-    n = g // s
+    grid, init_xy, init_mask, init_level, collide, out_of_range = _insert(
+        d, radius_map, init, r_lo, r_hi, g=g, periodic=periodic
+    )
+    occ, offs, rad = _fill(key, d, radius_map, grid, g=g, k=k, periodic=periodic)
+    pores, total = _compact(
+        d, radius_map, occ, grid[0], offs, rad, init_xy, init_mask, init_level, new_level,
+        g=g, capacity=capacity, periodic=periodic,
+    )  # fmt: skip
+    return pores, total, collide, out_of_range
+
+
+@functools.partial(jax.jit, static_argnames=("g", "periodic"))
+def _insert(d, radius_map, init, r_lo, r_hi, *, g, periodic):
     f32 = jnp.float32
 
     def radius_cells(xy):
-        r = at(d, xy, periodic=periodic)
-        if radius_map is not None:
-            r = r * at(radius_map, xy, periodic=periodic)
-        return r * g
+        return _radius_cells(d, radius_map, xy, g, periodic)
 
     rmin, rmax = jnp.min(d), jnp.max(d)
     if radius_map is not None:
@@ -284,15 +301,30 @@ def _sample(key, d, radius_map, init, new_level, r_lo, r_hi, *, g, k, capacity, 
     init_xy = init.positions[order]
     init_mask = init.mask[order]
     init_level = init.level[order]
-    init_count = jnp.sum(init_mask).astype(jnp.int32)
     cell = jnp.clip(jnp.floor(init_xy * g).astype(jnp.int32), 0, g - 1)
     flat = jnp.where(init_mask, cell[:, 1] * g + cell[:, 0], g * g)
     hits = jnp.zeros(g * g, jnp.int32).at[flat].add(1, mode="drop")
     collide = jnp.max(hits) > 1
     occ = (hits > 0).reshape(g, g)
-    init_occ = occ
-    offs = jnp.zeros((g * g, 2), f32).at[flat].set(init_xy * g - cell, mode="drop").reshape(g, g, 2)
+    offs = (
+        jnp.zeros((g * g, 2), f32)
+        .at[flat]
+        .set(init_xy * g - cell.astype(f32), mode="drop")
+        .reshape(g, g, 2)
+    )
     rad = jnp.zeros(g * g, f32).at[flat].set(radius_cells(init_xy), mode="drop").reshape(g, g)
+    return (occ, offs, rad), init_xy, init_mask, init_level, collide, out_of_range
+
+
+@functools.partial(jax.jit, static_argnames=("g", "k", "periodic"))
+def _fill(key, d, radius_map, grid, *, g, k, periodic):
+    s = k + 1
+    n = g // s
+    f32 = jnp.float32
+    occ, offs, rad = grid
+
+    def radius_cells(xy):
+        return _radius_cells(d, radius_map, xy, g, periodic)
 
     k_bits, k_order, k_darts = jax.random.split(key, 3)
     bits = jax.random.bits(k_bits, (g, g), dtype=jnp.uint32)
@@ -362,20 +394,32 @@ def _sample(key, d, radius_map, init, new_level, r_lo, r_hi, *, g, k, capacity, 
 
         return lax.fori_loop(0, s * s, one, state)
 
-    occ, offs, rad = lax.fori_loop(0, _ROUNDS, round_, (occ, offs, rad))
+    return lax.fori_loop(0, _ROUNDS, round_, (occ, offs, rad))
 
+
+@functools.partial(jax.jit, static_argnames=("g", "capacity", "periodic"))
+def _compact(
+    d, radius_map, occ, init_occ, offs, rad, init_xy, init_mask, init_level, new_level, *,
+    g, capacity, periodic,
+):  # fmt: skip
+    f32 = jnp.float32
+
+    def radius_cells(xy):
+        return _radius_cells(d, radius_map, xy, g, periodic)
+
+    init_count = jnp.sum(init_mask).astype(jnp.int32)
     # compaction: initial pores first (in order), then the new ones in cell order
     new = (occ & ~init_occ).reshape(-1)
     count_new = jnp.sum(new).astype(jnp.int32)
     idx = jnp.nonzero(new, size=capacity, fill_value=0)[0]
     cell_new = jnp.stack([idx % g, idx // g], axis=-1).astype(f32)
-    valid_new = jnp.arange(capacity) < count_new
+    valid_new = jnp.arange(capacity, dtype=jnp.int32) < count_new
     xy_new = jnp.where(valid_new[:, None], (cell_new + offs.reshape(-1, 2)[idx]) / g, 0.0)
     rad_new = jnp.where(valid_new, rad.reshape(-1)[idx] / g, 0.0)
     rad_init = radius_cells(init_xy) / g
     m = init_xy.shape[0]
-    slots = init_count + jnp.arange(capacity)
-    init_keep = jnp.where(init_mask, jnp.arange(m), capacity)
+    slots = init_count + jnp.arange(capacity, dtype=jnp.int32)
+    init_keep = jnp.where(init_mask, jnp.arange(m, dtype=jnp.int32), capacity)
     positions = jnp.zeros((capacity, 2), f32).at[init_keep].set(init_xy, mode="drop")
     positions = positions.at[slots].set(xy_new, mode="drop")
     radius = jnp.zeros(capacity, f32).at[init_keep].set(rad_init, mode="drop")
@@ -383,7 +427,7 @@ def _sample(key, d, radius_map, init, new_level, r_lo, r_hi, *, g, k, capacity, 
     level = jnp.zeros(capacity, jnp.int32).at[init_keep].set(init_level, mode="drop")
     level = level.at[slots].set(jnp.broadcast_to(new_level, (capacity,)), mode="drop")
     total = init_count + count_new
-    mask = jnp.arange(capacity) < total
+    mask = jnp.arange(capacity, dtype=jnp.int32) < total
     level = jnp.where(mask, level, 0)
     if periodic:
         positions = jnp.mod(positions, 1.0)
@@ -395,4 +439,4 @@ def _sample(key, d, radius_map, init, new_level, r_lo, r_hi, *, g, k, capacity, 
         count=jnp.minimum(total, capacity).astype(jnp.int32),
         periodic=periodic,
     )
-    return pores, total, collide, out_of_range
+    return pores, total

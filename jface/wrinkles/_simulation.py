@@ -12,10 +12,11 @@ same weights (they run in parallel, as in the paper's CUDA kernel); when ``m`` o
 the deposit compounds exactly: ``W ← 1 − (1 − W)(1 − Δt α_deposit)^m``. Then the global decay
 ``W ← W (1 − Δt α_decay N / |E|)`` (Eq. 8) is applied. The whole run is one ``lax.scan``.
 
-Choices where the paper is silent: ``P[θ]`` of Eq. 1 is normalised to a probability density over
-``[0, 2π)`` (``∫ α_s + exp(−|θ − α_θ|²_π / σ²) dθ = 2π α_s + 2σ√π erf(π / 2σ)``) before it enters
-Eq. 3 as ``p_pref``; ``d_h^(−α_dist)`` is evaluated as ``(d_h / min_h' d_h')^(−α_dist)``, which leaves
-the distribution unchanged (a positive factor per pore) and avoids overflow for tiny UV lengths.
+Choices where the paper is silent: ``P[θ]`` of Eq. 1 is normalised to a probability density
+over ``[0, 2π)`` (``∫ α_s + exp(−|θ − α_θ|²_π / σ²) dθ = 2π α_s + 2σ√π erf(π / 2σ)``) before it
+enters Eq. 3 as ``p_pref``; ``d_h^(−α_dist)`` is evaluated as ``(d_h / min_h' d_h')^(−α_dist)``,
+which leaves the distribution unchanged (a positive factor per pore) and avoids overflow for tiny
+UV lengths.
 Parameter textures are looked up at the pore for the node terms and at the edge midpoint for
 ``deposit``, ``decay`` and ``dt``.
 """
@@ -27,6 +28,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
@@ -39,14 +41,15 @@ from jface.wrinkles._textures import at
 N_SAMPLES = 50_000
 
 
-def angle_distance(a: Array, b: Array, period: float) -> Array:
+def angle_distance(a: ArrayLike, b: ArrayLike, period: float) -> Array:
     """``|a − b|`` with wrap-around at ``period`` (Eq. 2: ``period = π``; Eq. 4: ``2π``)."""
     half = 0.5 * period
+    a, b = jnp.asarray(a), jnp.asarray(b, dtype=jnp.result_type(a))
     return jnp.abs(jnp.mod(a - b + half, period) - half)
 
 
 def orientation_density(
-    angle: Array, theta: Array, s: Array, sigma: Array
+    angle: ArrayLike, theta: ArrayLike, s: ArrayLike, sigma: ArrayLike
 ) -> Array:
     """The orientation sampler ``P[θ]`` of Eq. 1–2, normalised over ``[0, 2π)``; undirected
     (``P[θ] = P[θ + π]``)."""
@@ -62,7 +65,7 @@ def _gauss(x, sigma):
 
 
 def half_edge_scores(
-    graph: PoreGraph, params: WrinkleParams, weights: Array, nodes: Array
+    graph: PoreGraph, params: WrinkleParams, weights: ArrayLike, nodes: ArrayLike
 ) -> Float[Array, "N D"]:
     """Unnormalised probabilities of Eq. 3 for the half-edges of ``nodes`` (N,) given edge
     ``weights`` (E,); zero on empty slots."""
@@ -73,7 +76,12 @@ def half_edge_scores(
         return at(v, pos, periodic=per)[:, None]
 
     theta, s, sigma = node(params.theta), node(params.s), node(params.sigma)
-    dist, cont, sim, cross = node(params.dist), node(params.cont), node(params.sim), node(params.cross)
+    dist, cont, sim, cross = (
+        node(params.dist),
+        node(params.cont),
+        node(params.sim),
+        node(params.cross),
+    )
     sigma_c = node(params.sigma_cont)[..., None]
     he = graph.half_edge[nodes]
     hm = graph.half_mask[nodes]
@@ -117,7 +125,7 @@ def simulate(
     n_steps: int = 50,
     n_samples: int | None = None,
     weights: ArrayLike | None = None,
-) -> Float[Array, "E"]:
+) -> Float[Array, " E"]:
     """Run the trail-formation simulation and return the edge weights ``W``.
 
     Implements Eq. 1–8 of Weiss et al. 2023 (see the module docstring). Jit- and vmap-friendly:
@@ -156,17 +164,18 @@ def simulate(
         w0 = _checks.float_array(weights, "weights", ndim=1, dtype=jnp.float32)
         if w0.shape[0] != n_edges:
             raise ValueError(f"weights must have shape ({n_edges},), got {_checks.describe(w0)}")
-        if not _checks.is_traced(w0) and bool(jnp.any((w0 < 0) | (w0 > 1))):
+        if not _checks.is_traced(w0) and bool(np.any((np.asarray(w0) < 0) | (np.asarray(w0) > 1))):
             raise ValueError("weights must lie in [0, 1]")
     leaves = (params.dt, params.decay, graph.edge_count)
     if not any(_checks.is_traced(x) for x in leaves):
-        worst = float(jnp.max(params.dt) * jnp.max(params.decay)) * n_samples
+        rate = float(np.max(params.dt)) * float(np.max(params.decay))
+        worst = rate * n_samples
         count = int(graph.edge_count)
         if count > 0 and worst > count:
             raise ValueError(
                 f"n_samples={n_samples} is too large for a graph of {count} edges: the decay "
                 f"factor 1 - dt·decay·N/|E| = {1 - worst / count:.3g} would be negative "
-                f"(use n_samples ≤ {int(count / float(jnp.max(params.dt) * jnp.max(params.decay)))})"
+                f"(use n_samples ≤ {int(count / rate)})"
             )
     return _simulate(key, graph, params, w0, n_steps=n_steps, n_samples=n_samples)
 

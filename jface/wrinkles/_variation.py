@@ -32,7 +32,8 @@ def perlin_variation(
         params: the level's parameters.
         amounts: parameter name → amplitude as a fraction of its range (≥ 0).
         resolution: texture size for parameters that are scalars (textures keep their size).
-        frequency, octaves: of the noise (lattice cells per unit length; see :func:`jface.noise.perlin`).
+        frequency, octaves: of the noise (lattice cells per unit length; see
+            :func:`jface.noise.perlin`).
 
     Returns:
         A new :class:`WrinkleParams` with the selected fields as textures.
