@@ -26,6 +26,7 @@ import math
 from typing import Any, Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
@@ -67,10 +68,18 @@ class Pyramid(eqx.Module):
         Removes what boundary padding added, so statistics see only the image: the result has
         ``ceil(H / 2**scale)`` rows and ``ceil(W / 2**scale)`` columns.
         """
-        step = 2 ** max(scale, 0)
-        top, left = self.pad[0] // step, self.pad[2] // step
-        height, width = (-(-n // step) for n in self.image_shape)
+        top, left, height, width = valid_window(self.image_shape, self.pad, scale)
         return coefficients[..., top : top + height, left : left + width]
+
+
+def valid_window(
+    image_shape: tuple[int, int], pad: tuple[int, int, int, int], scale: int
+) -> tuple[int, int, int, int]:
+    """``(top, left, height, width)`` of the image area inside a padded band of ``scale``
+    (``-1`` for the high-pass)."""
+    step = 2 ** max(scale, 0)
+    height, width = (-(-n // step) for n in image_shape)
+    return pad[0] // step, pad[2] // step, height, width
 
 
 def max_scales(shape: tuple[int, int]) -> int:
@@ -116,9 +125,15 @@ def build(
             f"at most {max(max_scales(shape), 0)} (min(H, W) must be >= 2**(n_scales + 2) = "
             f"{2 ** (n_scales + 2)})"
         )
-    pad = _padding(shape, n_scales, boundary)
-    padded = _pad(image, pad)
-    filters = _filters(padded.shape[-2:], n_scales, n_orientations, np.dtype(image.dtype).name)
+    return _build(image, n_scales, n_orientations, boundary)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _build(image: Array, n_scales: int, n_orientations: int, boundary: str) -> Pyramid:
+    shape = image.shape[-2:]
+    pad = padding(shape, n_scales, boundary)
+    padded = pad_image(image, pad)
+    filters = make_filters(padded.shape[-2:], n_scales, n_orientations, np.dtype(image.dtype).name)
     highpass, bands, lowpass = _analyse(filters, padded)
     return Pyramid(highpass, bands, lowpass, image_shape=tuple(shape), pad=pad)
 
@@ -127,9 +142,14 @@ def collapse(pyramid: Any) -> Float[Array, "*batch H W"]:
     """Reconstruct the image from a :class:`Pyramid` (exact inverse of :func:`build`)."""
     if not isinstance(pyramid, Pyramid):
         raise TypeError(f"pyramid must be a Pyramid, got {type(pyramid).__name__}")
-    n_scales = pyramid.n_scales
+    return _collapse(pyramid)
+
+
+@jax.jit
+def _collapse(pyramid: Pyramid) -> Array:
     dtype = np.dtype(pyramid.highpass.dtype).name
-    filters = _filters(pyramid.highpass.shape[-2:], n_scales, pyramid.n_orientations, dtype)
+    shape = pyramid.highpass.shape[-2:]
+    filters = make_filters(shape, pyramid.n_scales, pyramid.n_orientations, dtype)
     padded = _synthesise(filters, pyramid.highpass, pyramid.bands, pyramid.lowpass)
     top, _, left, _ = pyramid.pad
     h, w = pyramid.image_shape
@@ -170,7 +190,7 @@ def _raised_cosine(log_radius: np.ndarray, position: float) -> tuple[np.ndarray,
 
 
 @functools.lru_cache(maxsize=32)
-def _filters(shape: tuple[int, int], n_scales: int, n_orientations: int, dtype: str) -> Filters:
+def make_filters(shape: tuple[int, int], n_scales: int, n_orientations: int, dtype: str) -> Filters:
     h, w = shape
     order = n_orientations - 1
     const = (2 ** (2 * order)) * math.factorial(order) ** 2
@@ -191,13 +211,15 @@ def _filters(shape: tuple[int, int], n_scales: int, n_orientations: int, dtype: 
         _, lomask = _raised_cosine(log_r, -float(s + 1))
         lows.append(lomask)
     as_array = functools.partial(jnp.asarray, dtype=dtype)
-    return Filters(
-        hi0=as_array(hi0),
-        lo0=as_array(lo0),
-        band=tuple(map(as_array, bands)),
-        low=tuple(map(as_array, lows)),
-        sizes=tuple(sizes),
-    )
+    # Concrete arrays even when first asked for inside a trace: the cache must never hold tracers.
+    with jax.ensure_compile_time_eval():
+        return Filters(
+            hi0=as_array(hi0),
+            lo0=as_array(lo0),
+            band=tuple(map(as_array, bands)),
+            low=tuple(map(as_array, lows)),
+            sizes=tuple(sizes),
+        )
 
 
 # --- transform -------------------------------------------------------------------------------
@@ -229,10 +251,10 @@ def _times(spectrum: Array, mask: Array) -> Array:
 
 def _analyse(filters: Filters, image: Array) -> tuple[Array, tuple[Array, ...], Array]:
     spectrum = jnp.fft.rfft2(image)
-    return _analyse_spectrum(filters, spectrum)
+    return analyse_spectrum(filters, spectrum)
 
 
-def _analyse_spectrum(filters: Filters, spectrum: Array) -> tuple[Array, tuple[Array, ...], Array]:
+def analyse_spectrum(filters: Filters, spectrum: Array) -> tuple[Array, tuple[Array, ...], Array]:
     """Pyramid coefficients from the rfft2 of a (padded) image."""
     sizes = filters.sizes
     highpass = jnp.fft.irfft2(_times(spectrum, filters.hi0), s=sizes[0])
@@ -248,7 +270,7 @@ def _analyse_spectrum(filters: Filters, spectrum: Array) -> tuple[Array, tuple[A
     return highpass, tuple(bands), lowpass
 
 
-def _synthesise_spectrum(
+def synthesise_spectrum(
     filters: Filters, highpass: Array, bands: tuple[Array, ...], lowpass: Array
 ) -> Array:
     """rfft2 of the (padded) image that the coefficients reconstruct."""
@@ -262,14 +284,14 @@ def _synthesise_spectrum(
 
 
 def _synthesise(filters: Filters, highpass: Array, bands: tuple[Array, ...], lowpass: Array):
-    spectrum = _synthesise_spectrum(filters, highpass, bands, lowpass)
+    spectrum = synthesise_spectrum(filters, highpass, bands, lowpass)
     return jnp.fft.irfft2(spectrum, s=filters.sizes[0])
 
 
 # --- boundary handling -----------------------------------------------------------------------
 
 
-def _padding(shape: tuple[int, int], n_scales: int, boundary: str) -> tuple[int, int, int, int]:
+def padding(shape: tuple[int, int], n_scales: int, boundary: str) -> tuple[int, int, int, int]:
     step = 2**n_scales
     margin = 2 ** (n_scales + 2) if boundary == "reflect" else 0
     h, w = shape
@@ -278,7 +300,7 @@ def _padding(shape: tuple[int, int], n_scales: int, boundary: str) -> tuple[int,
     return (margin, margin + extra_h, margin, margin + extra_w)
 
 
-def _pad(image: Array, pad: tuple[int, int, int, int]) -> Array:
+def pad_image(image: Array, pad: tuple[int, int, int, int]) -> Array:
     if not any(pad):
         return image
     top, bottom, left, right = pad

@@ -5,6 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import mirror_tile
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from jface import pyramid
 
@@ -123,3 +125,17 @@ def test_bad_input(unchecked):
         pyramid.build(jnp.zeros((64, 64)), n_scales=2.5)
     with pytest.raises(TypeError, match="pyramid must be a Pyramid"):
         pyramid.collapse(jnp.zeros((64, 64)))
+
+
+@settings(max_examples=3, deadline=None)
+@given(
+    height=st.integers(64, 160),
+    width=st.integers(64, 160),
+    n_scales=st.integers(1, 4),
+    boundary=st.sampled_from(["circular", "reflect"]),
+)
+def test_reconstruction_property(height, width, n_scales, boundary):
+    """Any size the scale count allows reconstructs exactly, whatever the boundary."""
+    image = np.random.default_rng(height * 1000 + width).standard_normal((height, width))
+    pyr = pyramid.build(jnp.asarray(image), n_scales=n_scales, boundary=boundary)
+    assert rel_err(pyramid.collapse(pyr), image) < 1e-12

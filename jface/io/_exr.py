@@ -11,6 +11,7 @@ import numpy as np
 import OpenEXR
 
 from jface.io._files import atomic_path
+from jface.io._images import read_image
 
 _COMPRESSION = {
     "none": OpenEXR.NO_COMPRESSION,
@@ -111,7 +112,7 @@ def read_exr(path: str | os.PathLike) -> ExrImage:
     if not path.is_file():
         raise FileNotFoundError(f"no such EXR file: {path}")
     try:
-        exr = OpenEXR.File(str(path))
+        exr = OpenEXR.File(str(path), separate_channels=True)
         header = exr.header()
         channels = {
             name: np.array(channel.pixels, dtype=np.float32)
@@ -135,15 +136,31 @@ def read_exr(path: str | os.PathLike) -> ExrImage:
 
 
 def read_map(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
-    """Read one single-channel map (H, W) float32 from an EXR file.
+    """Read one single-channel map ``(H, W)`` float32: an EXR channel, a ``.npy`` array, or a
+    greyscale PNG/JPEG/TIFF in [0, 1].
 
     Args:
-        path: the EXR file.
-        channel: which channel; required when the file has several.
+        path: the file.
+        channel: which EXR channel; required when the EXR file has several.
 
     Raises:
-        ValueError: several channels and none named, an unknown channel, or a bad file.
+        FileNotFoundError: no such file.
+        ValueError: several channels and none named, an unknown channel, not 2-D, or a bad file.
     """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        if not path.is_file():
+            raise FileNotFoundError(f"no such file: {path}")
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as err:
+            raise ValueError(f"{path} is not a readable .npy array: {err}") from err
+        if data.ndim != 2 or data.dtype.kind not in "fiu":
+            raise ValueError(f"{path} must hold a 2-D numeric map, got {data.shape} {data.dtype}")
+        return data.astype(np.float32)
+    if suffix != ".exr":
+        return read_image(path, grey=True)
     image = read_exr(path)
     names = list(image.channels)
     if channel is None:

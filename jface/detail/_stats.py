@@ -1,0 +1,280 @@
+"""Per-tile steerable-pyramid statistics of displacement images (Golovinskiy et al. 2006, §2.3)."""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.typing import ArrayLike
+from jaxtyping import Array, Float
+
+from jface import _checks, io, pyramid, tiles
+
+
+class DetailStats(eqx.Module):
+    """Statistics of one displacement image (or, with leading axes, of many).
+
+    ``std[b, i, j]`` is the standard deviation of band ``b`` in tile ``(i, j)``; bands are ordered
+    [high-pass, scale 0 orientations 0..K-1, scale 1 ..., ...] (:func:`jface.pyramid.band_names`).
+    The low-pass residual is excluded: it belongs to the base mesh. These are the paper's
+    "reduced" statistics, 17 × 16 × 16 numbers per face. The "full" statistics add a histogram per
+    tile and band: ``probabilities[b, i, j, :]`` on uniform bins spanning ``ranges[b, i, j]``.
+
+    Attributes:
+        std: ``(..., n_bands, grid, grid)``.
+        probabilities: ``(..., n_bands, grid, grid, bins)`` or None.
+        ranges: ``(..., n_bands, grid, grid, 2)`` (min, max) or None.
+        n_scales, n_orientations: the pyramid the statistics come from (static).
+        image_shape: ``(H, W)`` of the analysed image (static).
+    """
+
+    std: Float[Array, "*batch bands grid grid"]
+    probabilities: Float[Array, "*batch bands grid grid bins"] | None
+    ranges: Float[Array, "*batch bands grid grid 2"] | None
+    n_scales: int = eqx.field(static=True)
+    n_orientations: int = eqx.field(static=True)
+    image_shape: tuple[int, int] = eqx.field(static=True)
+
+    @property
+    def grid(self) -> int:
+        return self.std.shape[-1]
+
+    @property
+    def bins(self) -> int | None:
+        return None if self.probabilities is None else self.probabilities.shape[-1]
+
+    @property
+    def band_names(self) -> tuple[str, ...]:
+        return pyramid.band_names(self.n_scales, self.n_orientations)
+
+    @property
+    def full(self) -> bool:
+        """True when per-tile histograms are present (the paper's "full" statistics)."""
+        return self.probabilities is not None
+
+    def reduced(self) -> DetailStats:
+        """The same statistics without histograms."""
+        return DetailStats(
+            self.std, None, None, self.n_scales, self.n_orientations, self.image_shape
+        )
+
+    def detail_rms(self) -> Float[Array, "*batch"]:
+        """Root-mean-square amplitude of the detail these statistics describe.
+
+        The pyramid is a tight frame, and with pyrtools' scaling a band of scale ``s`` carries
+        ``16**-s`` of its variance back into the image, so this is the standard deviation that an
+        image with these statistics has once its low-pass is removed.
+        """
+        weights = jnp.asarray(
+            [1.0] + [16.0**-s for s in range(self.n_scales) for _ in range(self.n_orientations)],
+            self.std.dtype,
+        )
+        energy = jnp.mean(self.std**2, axis=(-2, -1))
+        return jnp.sqrt(jnp.sum(energy * weights, axis=-1))
+
+
+def check_layout(grid: int, shape: tuple[int, int], n_scales: int) -> None:
+    """Raise ValueError unless ``grid`` tiles every detail band of an image of ``shape``."""
+    for s in range(n_scales):
+        band_shape = (-(-shape[0] // 2**s), -(-shape[1] // 2**s))
+        if band_shape[0] % grid or band_shape[1] % grid:
+            step = grid * 2 ** (n_scales - 1)
+            raise ValueError(
+                f"grid={grid} must divide every band of a {shape[0]}×{shape[1]} image with "
+                f"n_scales={n_scales}, but scale {s} is {band_shape[0]}×{band_shape[1]}; use sides "
+                f"that are multiples of grid·2**(n_scales-1) = {step} (crop or resample), or "
+                "another grid"
+            )
+
+
+def analyze(
+    image: ArrayLike,
+    *,
+    grid: int = 16,
+    n_scales: int = 4,
+    n_orientations: int = 4,
+    bins: int | None = None,
+    boundary: pyramid.Boundary = "circular",
+) -> DetailStats:
+    """Per-tile statistics of a displacement image (Golovinskiy et al. 2006, §2.3).
+
+    The image is decomposed by a steerable pyramid with ``n_scales`` scales and
+    ``n_orientations`` orientations; every detail band (the high-pass residual and each oriented
+    band, not the low-pass) is cut into ``grid × grid`` non-overlapping tiles, and each tile's
+    standard deviation (mean subtracted, ddof=0) is taken. With ``bins``, each tile's histogram
+    is stored too. One image per call; use ``jax.vmap(analyze)`` for batches.
+
+    Args:
+        image: ``(H, W)`` float displacement image. ``grid`` must divide every band size, i.e.
+            H and W must be multiples of ``grid * 2**(n_scales - 1)`` (1024 for the paper's
+            16 × 16 grid and 4 scales works, so do 128 or 256).
+        grid: tiles per side (the paper: 16).
+        n_scales, n_orientations: pyramid layout (the paper: 4 and 4, giving 17 bands).
+        bins: number of histogram bins for the "full" statistics (the paper: 128), or None.
+        boundary: "circular" (the paper's FFT pyramid) or "reflect" (see
+            :func:`jface.pyramid.build`).
+
+    Returns:
+        :class:`DetailStats` with ``std`` of shape ``(1 + n_scales * n_orientations, grid, grid)``.
+
+    Raises:
+        TypeError, ValueError: bad image (see :func:`jface.pyramid.build`), grid not dividing the
+            band sizes, bad counts.
+    """
+    image = _checks.float_array(image, "image", ndim=2)
+    grid = _checks.integer(grid, "grid", low=1)
+    if bins is not None:
+        bins = _checks.integer(bins, "bins", low=2)
+    n_scales = _checks.integer(n_scales, "n_scales", low=0)
+    n_orientations = _checks.integer(n_orientations, "n_orientations", low=1, high=16)
+    _checks.choice(boundary, "boundary", ("circular", "reflect"))
+    if n_scales > pyramid.max_scales(image.shape):
+        pyramid.build(image, n_scales, n_orientations)  # raises the pyramid's own message
+    check_layout(grid, image.shape, n_scales)
+    return _analyze(image, grid, n_scales, n_orientations, bins, boundary)
+
+
+def analyze_like(image: ArrayLike, like: DetailStats, **options: Any) -> DetailStats:
+    """:func:`analyze` with the layout (grid, scales, orientations, bins) of ``like``."""
+    return analyze(
+        image,
+        grid=like.grid,
+        n_scales=like.n_scales,
+        n_orientations=like.n_orientations,
+        bins=like.bins,
+        **options,
+    )
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
+def _analyze(image, grid, n_scales, n_orientations, bins, boundary) -> DetailStats:
+    pyr = pyramid.build(image, n_scales, n_orientations, boundary=boundary)
+    bands = pyramid.detail_bands(pyr)
+    std = jnp.stack([tiles.tile_std(b, grid) for b in bands])
+    probabilities = ranges = None
+    if bins is not None:
+        histograms = [tiles.tile_histograms(b, grid, bins) for b in bands]
+        probabilities = jnp.stack([h[0] for h in histograms])
+        ranges = jnp.stack([h[1] for h in histograms])
+    return DetailStats(std, probabilities, ranges, n_scales, n_orientations, tuple(image.shape))
+
+
+def stats_error(stats: DetailStats, target: DetailStats) -> Float[Array, "*batch bands grid grid"]:
+    """Relative per-tile std error ``|std - target| / target`` (0 where the target is 0)."""
+    safe = jnp.where(target.std > 0, target.std, 1.0)
+    return jnp.where(target.std > 0, jnp.abs(stats.std - target.std) / safe, 0.0)
+
+
+def mean_stats(stats: DetailStats, weights: ArrayLike | None = None) -> DetailStats:
+    """Weighted mean over the leading axis of a stack of statistics.
+
+    Standard deviations are averaged as variances (the square root of the mean variance), so the
+    mean describes the average amount of detail; histograms are averaged as distributions.
+    """
+    if stats.std.ndim != 4:
+        raise ValueError(f"stats must be a stack (n, bands, grid, grid), got {stats.std.shape}")
+    n = stats.std.shape[0]
+    if weights is None:
+        weights = jnp.full(n, 1.0 / n, stats.std.dtype)
+    weights = _checks.float_array(weights, "weights", ndim=1).astype(stats.std.dtype)
+    if weights.shape[0] != n:
+        raise ValueError(f"weights must have {n} entries (one per face), got {weights.shape[0]}")
+    std = jnp.sqrt(jnp.einsum("n,n...->...", weights, stats.std**2))
+    probabilities = ranges = None
+    if stats.full:
+        low = stats.ranges[..., 0].min(axis=0)
+        high = stats.ranges[..., 1].max(axis=0)
+        ranges = jnp.stack([low, high], axis=-1)
+        probabilities = jax.vmap(_rebin, in_axes=(0, 0, None))(
+            stats.probabilities, stats.ranges, ranges
+        )
+        probabilities = jnp.einsum("n,n...->...", weights, probabilities)
+    return DetailStats(
+        std, probabilities, ranges, stats.n_scales, stats.n_orientations, stats.image_shape
+    )
+
+
+def _rebin(probabilities, ranges, new_ranges):
+    """Re-express histograms on other uniform bins (linear CDF interpolation)."""
+    bins = probabilities.shape[-1]
+
+    def one(p, r, nr):
+        edges = jnp.linspace(r[0], r[1], bins + 1)
+        cdf = jnp.concatenate([jnp.zeros(1, p.dtype), jnp.cumsum(p)])
+        new_edges = jnp.linspace(nr[0], nr[1], bins + 1)
+        return jnp.diff(jnp.interp(new_edges, edges, cdf, left=0.0, right=1.0))
+
+    flat = (probabilities.reshape(-1, bins), ranges.reshape(-1, 2), new_ranges.reshape(-1, 2))
+    return jax.vmap(one)(*flat).reshape(probabilities.shape)
+
+
+# --- files -----------------------------------------------------------------------------------
+
+
+def stats_to_arrays(stats: DetailStats) -> tuple[dict[str, Array], dict[str, Any]]:
+    """Arrays and layout metadata of statistics, for :func:`jface.io.save_arrays`."""
+    arrays = {"std": stats.std}
+    if stats.full:
+        arrays |= {"probabilities": stats.probabilities, "ranges": stats.ranges}
+    layout = {
+        "n_scales": stats.n_scales,
+        "n_orientations": stats.n_orientations,
+        "grid": stats.grid,
+        "image_shape": list(stats.image_shape),
+    }
+    return arrays, layout
+
+
+def stats_from_arrays(arrays: dict[str, Any], meta: dict[str, Any], path) -> DetailStats:
+    """Inverse of :func:`stats_to_arrays`; a clear error names ``path`` if anything is off."""
+    try:
+        std = jnp.asarray(arrays["std"])
+        n_bands = 1 + meta["n_scales"] * meta["n_orientations"]
+        if std.shape[-3:] != (n_bands, meta["grid"], meta["grid"]):
+            raise ValueError(f"std has shape {std.shape}, expected (..., {n_bands}, g, g)")
+        return DetailStats(
+            std,
+            jnp.asarray(arrays["probabilities"]) if "probabilities" in arrays else None,
+            jnp.asarray(arrays["ranges"]) if "ranges" in arrays else None,
+            int(meta["n_scales"]),
+            int(meta["n_orientations"]),
+            tuple(int(n) for n in meta["image_shape"]),
+        )
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(f"{path} holds malformed statistics: {err}") from err
+
+
+def save_stats(
+    path: str | os.PathLike, stats: DetailStats, *, source: str | None = None, **metadata: Any
+) -> None:
+    """Save statistics (one face or a stack) with provenance to one ``.npz`` file."""
+    arrays, layout = stats_to_arrays(stats)
+    io.save_arrays(
+        path, arrays, io.provenance(**layout, source=source, **metadata), kind="DetailStats"
+    )
+
+
+def load_stats(path: str | os.PathLike) -> tuple[DetailStats, dict[str, Any]]:
+    """Load statistics saved by :func:`save_stats`; returns ``(stats, metadata)``."""
+    arrays, meta = io.load_arrays(path, kind="DetailStats")
+    return stats_from_arrays(arrays, meta, path), meta
+
+
+def stack_stats(items: list[DetailStats]) -> DetailStats:
+    """Stack statistics of several faces along a new leading axis (layouts must agree)."""
+    if not items:
+        raise ValueError("need at least one DetailStats to stack, got none")
+    first = items[0]
+    for i, item in enumerate(items):
+        layout = (item.n_scales, item.n_orientations, item.grid, item.bins, item.image_shape)
+        expected = (first.n_scales, first.n_orientations, first.grid, first.bins, first.image_shape)
+        if layout != expected:
+            raise ValueError(
+                f"statistics {i} has layout (n_scales, n_orientations, grid, bins, image_shape) "
+                f"= {layout}, expected {expected} like the first"
+            )
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *items)
