@@ -123,11 +123,11 @@ def _simulate(args: argparse.Namespace) -> None:
 
 
 def demo(out_dir: Path, seed: int) -> None:
-    """Two levels of pores and wrinkles on a tileable patch (a few seconds)."""
+    """Pores and wrinkles on a tileable patch (a few seconds, mostly compilation)."""
     from jface.cli import main
 
     main(
-        ["wrinkles", "simulate", "--out", str(Path(out_dir) / "wrinkles"), "--levels", "2",
-         "--d", "0.02", "--theta", "0.6", "--s", "0.2", "--cross", "0.5", "--deposit", "0.4",
+        ["wrinkles", "simulate", "--out", str(Path(out_dir) / "wrinkles"), "--levels", "1",
+         "--d", "0.015", "--theta", "0.6", "--s", "0.2", "--cross", "0.5", "--deposit", "0.4",
          "--periodic", "--size", "768", "--seed", str(seed)]
     )  # fmt: skip

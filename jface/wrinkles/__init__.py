@@ -26,6 +26,7 @@ from jface.wrinkles._sampling import Pores, default_capacity, make_pores, sample
 from jface.wrinkles._simulation import (
     N_SAMPLES,
     angle_distance,
+    continuation_kernel,
     half_edge_scores,
     orientation_density,
     simulate,
@@ -41,6 +42,7 @@ __all__ = [
     "WrinkleParams",
     "angle_distance",
     "build_graph",
+    "continuation_kernel",
     "default_capacity",
     "graph_spec",
     "half_edge_scores",

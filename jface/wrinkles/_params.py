@@ -136,7 +136,8 @@ class WrinkleParams(eqx.Module):
         out = {}
         for name in _NAMES:
             value = np.asarray(getattr(self, name))
-            out[name] = float(value) if value.ndim == 0 else value.tolist()
+            # shortest decimal that round-trips the float32 value (0.02, not 0.0199999996)
+            out[name] = float(str(value)) if value.ndim == 0 else value.tolist()
         return out
 
     @classmethod

@@ -64,11 +64,35 @@ def _gauss(x, sigma):
     return jnp.exp(-(x * x) / (2.0 * sigma * sigma)) / (sigma * math.sqrt(2.0 * math.pi))
 
 
+def continuation_kernel(
+    graph: PoreGraph, params: WrinkleParams, nodes: ArrayLike
+) -> Float[Array, "N D D"]:
+    """The weights of Eq. 4 for the half-edge pairs of ``nodes``:
+    ``K[h, h'] = α_cont N(|θ_h − (θ_h' + π)|_2π) − α_sim N(|θ_h − θ_h'|_2π)``, zero on the
+    diagonal and on empty slots, so that ``p_cont = K @ W_h'``."""
+    pos = graph.positions[nodes]
+    per = graph.periodic
+    cont = at(params.cont, pos, periodic=per)[:, None, None]
+    sim = at(params.sim, pos, periodic=per)[:, None, None]
+    sigma_c = at(params.sigma_cont, pos, periodic=per)[:, None, None]
+    hm = graph.half_mask[nodes]
+    th = graph.half_angle[nodes]
+    same = angle_distance(th[:, :, None], th[:, None, :], 2.0 * math.pi)  # in [0, π]
+    kern = cont * _gauss(math.pi - same, sigma_c) - sim * _gauss(same, sigma_c)
+    d = hm.shape[-1]
+    return jnp.where(~jnp.eye(d, dtype=bool) & hm[:, None, :] & hm[:, :, None], kern, 0.0)
+
+
 def half_edge_scores(
-    graph: PoreGraph, params: WrinkleParams, weights: ArrayLike, nodes: ArrayLike
+    graph: PoreGraph,
+    params: WrinkleParams,
+    weights: ArrayLike,
+    nodes: ArrayLike,
+    kernel: ArrayLike | None = None,
 ) -> Float[Array, "N D"]:
     """Unnormalised probabilities of Eq. 3 for the half-edges of ``nodes`` (N,) given edge
-    ``weights`` (E,); zero on empty slots."""
+    ``weights`` (E,); zero on empty slots. ``kernel``: optionally :func:`continuation_kernel` of
+    all pores, reshaped to ``(n, D·D)``."""
     pos = graph.positions[nodes]
     per = graph.periodic
 
@@ -76,13 +100,8 @@ def half_edge_scores(
         return at(v, pos, periodic=per)[:, None]
 
     theta, s, sigma = node(params.theta), node(params.s), node(params.sigma)
-    dist, cont, sim, cross = (
-        node(params.dist),
-        node(params.cont),
-        node(params.sim),
-        node(params.cross),
-    )
-    sigma_c = node(params.sigma_cont)[..., None]
+    dist, cont, sim = node(params.dist), node(params.cont), node(params.sim)
+    cross = node(params.cross)
     he = graph.half_edge[nodes]
     hm = graph.half_mask[nodes]
     th = graph.half_angle[nodes]
@@ -90,16 +109,16 @@ def half_edge_scores(
     w = jnp.where(hm, weights[he], 0.0)
 
     def continuation():  # Eq. 4: reward the opposite direction, penalise similar directions
-        diff = th[:, :, None] - th[:, None, :]
-        kern = cont[..., None] * _gauss(angle_distance(diff, math.pi, 2.0 * math.pi), sigma_c)
-        kern = kern - sim[..., None] * _gauss(angle_distance(diff, 0.0, 2.0 * math.pi), sigma_c)
-        d = hm.shape[-1]
-        kern = jnp.where(~jnp.eye(d, dtype=bool) & hm[:, None, :], kern, 0.0)
+        if kernel is None:
+            kern = continuation_kernel(graph, params, nodes)
+        else:  # rows of a per-pore table (n, D·D): 2-D gathers are much faster on CPU
+            kern = kernel[nodes].reshape(*hm.shape, hm.shape[-1])
         return jnp.einsum("nhk,nk->nh", kern, w)
 
     def crossing():  # Eq. 6: summed weight of the crossing edges
-        cr = graph.crossings[he]
-        return jnp.sum(jnp.where(graph.crossing_mask[he], weights[cr], 0.0), axis=-1)
+        flat = he.reshape(-1)  # 2-D row gathers are much faster than 3-D ones on CPU
+        cw = jnp.where(graph.crossing_mask[flat], weights[graph.crossings[flat]], 0.0)
+        return jnp.sum(cw, axis=-1).reshape(he.shape)
 
     def zeros():
         return jnp.zeros(hm.shape, w.dtype)
@@ -191,14 +210,24 @@ def _simulate(key, graph, params, w0, *, n_steps, n_samples):
     n_edges = graph.edge_mask.shape[0]
     n_valid = jnp.maximum(graph.edge_count, 1).astype(jnp.float32)
     fade = jnp.maximum(0.0, 1.0 - dt * decay * (n_samples / n_valid))
-    d = graph.half_mask.shape[-1]
+    n_nodes, d = graph.half_mask.shape
+    # Eq. 4's kernel depends only on the graph and the parameters: precompute it per pore when it
+    # fits in memory (2^25 entries), else evaluate it for the sampled pores each step
+    table = None
+    if n_nodes * d * d <= 2**25:
+        all_nodes = jnp.arange(n_nodes, dtype=jnp.int32)
+        table = jax.lax.cond(
+            jnp.any(params.cont != 0) | jnp.any(params.sim != 0),
+            lambda: continuation_kernel(graph, params, all_nodes).reshape(n_nodes, d * d),
+            lambda: jnp.zeros((n_nodes, d * d), jnp.float32),
+        )
 
     def step(w, key):
         k_node, k_pick = jax.random.split(key)
         nodes = jax.random.randint(
             k_node, (n_samples,), 0, jnp.maximum(graph.node_count, 1), dtype=jnp.int32
         )
-        score = half_edge_scores(graph, params, w, nodes)
+        score = half_edge_scores(graph, params, w, nodes, table)
         cum = jnp.cumsum(score, axis=-1)
         total = cum[:, -1]
         u = jax.random.uniform(k_pick, (n_samples,), dtype=jnp.float32) * total
