@@ -118,7 +118,9 @@ class WrinkleParams(eqx.Module):
                 continue
             lo, hi = PARAMETER_RANGES[name]
             vmin, vmax = float(np.min(value)), float(np.max(value))
-            if not (np.isfinite(vmin) and np.isfinite(vmax)) or vmin < lo or vmax > hi:
+            # compare in float32, the values' precision (0.05 is stored as 0.0500000007)
+            low, high = float(np.float32(lo)), float(np.float32(hi))
+            if not (np.isfinite(vmin) and np.isfinite(vmax)) or vmin < low or vmax > high:
                 got = f"{vmin}" if value.ndim == 0 else f"values in [{vmin}, {vmax}]"
                 raise ValueError(
                     f"WrinkleParams.{name} must be in [{lo}, {hi}] (Table 1), got {got}"

@@ -185,7 +185,7 @@ def sample_pores(
     if d.ndim not in (0, 2):
         raise ValueError(f"d must be a scalar or a 2-D texture (H, W), got {_checks.describe(d)}")
     lo, hi = PARAMETER_RANGES["d"]
-    if not _checks.is_traced(d) and (float(np.min(d)) < lo or float(np.max(d)) > hi):
+    if not _checks.is_traced(d) and (np.min(d) < np.float32(lo) or np.max(d) > np.float32(hi)):
         raise ValueError(
             f"d (α_d) must be in [{lo}, {hi}] (Table 1), got values in "
             f"[{float(np.min(d))}, {float(np.max(d))}]"
