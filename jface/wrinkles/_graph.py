@@ -401,6 +401,11 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
     if not isinstance(pores, Pores):
         raise TypeError(f"pores must be Pores, got {_checks.describe(pores)}")
     auto = spec is None
+    if auto and (_checks.is_traced(pores.positions) or _checks.is_traced(pores.count)):
+        raise ValueError(
+            "build_graph needs an explicit spec=graph_spec(...) under jit/vmap "
+            "(the static sizes cannot be read from traced pores)"
+        )
     if auto:
         spec = graph_spec(pores, k=k)
     if not isinstance(spec, GraphSpec):
