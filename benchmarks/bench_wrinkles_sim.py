@@ -136,7 +136,8 @@ def numpy_step(rng, g, w, n, params):
     cr = g["crossings"][he]
     p_cross = np.sum(np.where(g["crossing_mask"][he], w[cr], 0.0), -1)
     ref = np.min(np.where(hm, hl, np.inf), -1, keepdims=True)
-    score = (hl / ref) ** (-params["dist"]) * (p_cont + (1 - params["cont"]) * p_pref
+    ratio = np.where(hm, hl / np.where(np.isfinite(ref), ref, 1.0), 1.0)
+    score = ratio ** (-params["dist"]) * (p_cont + (1 - params["cont"]) * p_pref
                                                - params["cross"] * p_cross)  # fmt: skip
     score = np.where(hm, np.maximum(score, 0), 0)
     cum = np.cumsum(score, -1)
