@@ -358,9 +358,10 @@ def graph_spec(
     if pores.periodic and edge_grid < 5:
         raise ValueError("the pores are too sparse for a periodic graph (edges longer than 0.4)")
     if edge_cell_capacity is None:
-        # midpoints per cell of side ≥ longest/2: bounded by the edge density (≈ 3.5 edges per
-        # pore at ≥ 0.69/r_hi² pores... measured with headroom)
-        edge_cell_capacity = max(8, math.ceil(4.0 * k * (longest * 0.5 * 1.0 / r_lo) ** 2 / 2))
+        # at most k edges per pore and 2/(√3 r_lo²) pores per unit area, with 50% headroom;
+        # build_graph raises (never drops) if a cell holds more
+        side = 1.0 / edge_grid
+        edge_cell_capacity = max(8, math.ceil(1.5 * k * 2.0 / math.sqrt(3.0) * (side / r_lo) ** 2))
     return GraphSpec(
         k=k,
         max_degree=2 * k + 4
