@@ -26,7 +26,7 @@ def test_interpolation_restores_detail(faces, key):
     assert float(jnp.median(jnp.abs(coerced / target - 1))) < 0.05
 
 
-def test_statistical_method_beats_the_baselines(faces, key, brick):
+def test_statistical_method_trades_off_better_than_the_baselines(faces, key, brick):
     images, _ = faces
     old = jnp.asarray(brick[:256, :256], jnp.float32)  # "old face": other, oriented detail
     old_stats = detail.analyze(old, grid=8)

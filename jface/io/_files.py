@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from collections.abc import Iterable, Iterator
@@ -40,3 +41,11 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def write_json(path: str | os.PathLike, data: object, *, protect=()) -> Path:
+    """Write JSON (indented) atomically."""
+    path = Path(path)
+    with atomic_path(path, protect=protect) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+    return path
