@@ -134,6 +134,7 @@ def perlin_at(
     Raises:
         ValueError/TypeError: malformed points or parameters out of range.
     """
+    key = _checks.key(key)
     pts = _checks.float_array(points, "points", min_ndim=1)
     if pts.shape[-1] != 2:
         raise ValueError(f"points must have shape (..., 2), got {_checks.describe(pts)}")
@@ -166,6 +167,7 @@ def perlin(
     Returns:
         ``(H, W)`` noise roughly in ``[-1, 1]``.
     """
+    key = _checks.key(key)
     if not (isinstance(shape, tuple | list) and len(shape) == 2):
         raise TypeError(f"shape must be a pair (H, W), got {_checks.describe(shape)}")
     h = _checks.integer(shape[0], "shape[0]", low=1)

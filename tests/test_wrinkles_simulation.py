@@ -175,6 +175,8 @@ def test_bad_simulation_input(graph, unchecked):
         simulate(jax.random.key(0), graph, WrinkleParams(decay=1.0), n_samples=10**7)
     with pytest.raises(TypeError, match="WrinkleParams"):
         simulate(jax.random.key(0), graph, {"deposit": 0.3})
+    with pytest.raises(TypeError, match="random key"):
+        simulate(0, graph, WrinkleParams())
     with pytest.raises(ValueError, match="weights must"):
         simulate(
             jax.random.key(0),

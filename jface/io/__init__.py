@@ -5,11 +5,8 @@ from jface.io._arrays import load_arrays, save_arrays
 from jface.io._exr import ExrImage, read_exr, read_map, write_exr
 from jface.io._files import atomic_path, write_json
 from jface.io._images import read_image, write_png
-<<<<<<< HEAD
-from jface.io._json import read_json, write_json
-=======
+from jface.io._json import read_json
 from jface.io._meshes import MeshData, read_landmarks, read_mesh, write_landmarks, write_mesh
->>>>>>> main
 from jface.io._provenance import provenance
 
 __all__ = [
@@ -20,20 +17,14 @@ __all__ = [
     "provenance",
     "read_exr",
     "read_image",
-<<<<<<< HEAD
     "read_json",
-=======
     "read_landmarks",
->>>>>>> main
     "read_map",
     "read_mesh",
     "save_arrays",
     "write_exr",
     "write_json",
-<<<<<<< HEAD
-=======
     "write_landmarks",
     "write_mesh",
->>>>>>> main
     "write_png",
 ]

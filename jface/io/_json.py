@@ -1,4 +1,4 @@
-"""Small JSON documents (parameter sets), written atomically."""
+"""Reading small JSON documents (parameter sets); writing is ``write_json`` in ``_files``."""
 
 from __future__ import annotations
 
@@ -6,19 +6,6 @@ import json
 import os
 from pathlib import Path
 from typing import Any
-
-from jface.io._files import atomic_path
-
-
-def write_json(
-    path: str | os.PathLike, document: Any, *, protect: tuple[str | os.PathLike, ...] = ()
-) -> Path:
-    """Write a JSON-serialisable document (indented), atomically."""
-    path = Path(path)
-    text = json.dumps(document, indent=1)
-    with atomic_path(path, protect=protect) as tmp:
-        tmp.write_text(text + "\n")
-    return path
 
 
 def read_json(path: str | os.PathLike) -> Any:

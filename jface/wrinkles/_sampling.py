@@ -180,6 +180,7 @@ def sample_pores(
             ``capacity`` (never silently dropped), colliding initial pores. Under ``jit`` the
             same conditions raise through ``equinox.error_if``.
     """
+    key = _checks.key(key)
     traced = _checks.is_traced(d) or _checks.is_traced(radius_map)
     d = _checks.float_array(d, "d", dtype=jnp.float32)
     if d.ndim not in (0, 2):

@@ -168,6 +168,7 @@ def simulate(
         TypeError/ValueError: wrong types, non-positive sizes, weights of the wrong shape or out
             of [0, 1], or a decay factor ``1 − Δt α_decay N/|E|`` below zero.
     """
+    key = _checks.key(key)
     if not isinstance(graph, PoreGraph):
         raise TypeError(f"graph must be a PoreGraph, got {_checks.describe(graph)}")
     if not isinstance(params, WrinkleParams):

@@ -41,6 +41,7 @@ def perlin_variation(
     Raises:
         ValueError: unknown parameter names or negative amounts.
     """
+    key = _checks.key(key)
     if not isinstance(params, WrinkleParams):
         raise TypeError(f"params must be WrinkleParams, got {_checks.describe(params)}")
     if not isinstance(amounts, dict):
