@@ -73,8 +73,8 @@ def float_array(
         raise ValueError(f"{name} must have at least {min_ndim} axes, got {describe(arr)}")
     if arr.size == 0:
         raise ValueError(f"{name} must not be empty, got {describe(arr)}")
-    if finite and not is_traced(arr) and not bool(jnp.all(jnp.isfinite(arr))):
-        bad = int(jnp.sum(~jnp.isfinite(arr)))
+    if finite and not is_traced(arr) and not np.all(np.isfinite(np.asarray(arr))):
+        bad = int(np.sum(~np.isfinite(np.asarray(arr))))
         raise ValueError(f"{name} must be finite, got {bad} NaN or infinite value(s)")
     return arr
 

@@ -17,7 +17,12 @@ from pathlib import Path
 from jface import __version__
 
 #: Modules contributing sub-commands, in the order their demo steps run.
-COMMAND_MODULES = ("jface.cli._detail", "jface.cli._mesh", "jface.cli._faces")
+COMMAND_MODULES = (
+    "jface.cli._detail",
+    "jface.cli._mesh",
+    "jface.cli._faces",
+    "jface.cli._wrinkles",
+)
 
 
 def _modules():

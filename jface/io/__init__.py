@@ -5,6 +5,7 @@ from jface.io._arrays import load_arrays, save_arrays
 from jface.io._exr import ExrImage, read_exr, read_map, write_exr
 from jface.io._files import atomic_path, write_json
 from jface.io._images import read_image, write_png
+from jface.io._json import read_json
 from jface.io._meshes import MeshData, read_landmarks, read_mesh, write_landmarks, write_mesh
 from jface.io._provenance import provenance
 
@@ -16,6 +17,7 @@ __all__ = [
     "provenance",
     "read_exr",
     "read_image",
+    "read_json",
     "read_landmarks",
     "read_map",
     "read_mesh",

@@ -1,0 +1,59 @@
+"""Micro-wrinkle simulation (Weiss et al. 2023, *Graph-Based Synthesis for Skin Micro Wrinkles*).
+
+Pipeline of §3.1, one level::
+
+    params = WrinkleParams(d=0.01, theta=0.5, s=0.2)
+    pores = sample_pores(key1, params.d)                  # maximal Poisson-disk pores
+    graph = build_graph(pores)                            # symmetric kNN, half-edges, crossings
+    w = simulate(key2, graph, params, n_steps=50)         # trail formation → edge weights W
+
+A finer level starts from the coarser pores: ``sample_pores(key, d2, initial=pores)``.
+All positions are ``(x, y)`` in the unit square; textures ``(H, W)`` cover it with ``x`` along
+columns and ``y`` along rows.
+"""
+
+from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
+from jface.wrinkles._params import (
+    PARAMETER_RANGES,
+    WrinkleParams,
+    load_params,
+    params_from_json,
+    params_to_json,
+    save_params,
+    stack_params,
+)
+from jface.wrinkles._sampling import Pores, default_capacity, make_pores, sample_pores
+from jface.wrinkles._simulation import (
+    N_SAMPLES,
+    angle_distance,
+    continuation_kernel,
+    half_edge_scores,
+    orientation_density,
+    simulate,
+)
+from jface.wrinkles._variation import perlin_variation
+
+__all__ = [
+    "N_SAMPLES",
+    "PARAMETER_RANGES",
+    "GraphSpec",
+    "PoreGraph",
+    "Pores",
+    "WrinkleParams",
+    "angle_distance",
+    "build_graph",
+    "continuation_kernel",
+    "default_capacity",
+    "graph_spec",
+    "half_edge_scores",
+    "load_params",
+    "make_pores",
+    "orientation_density",
+    "params_from_json",
+    "params_to_json",
+    "perlin_variation",
+    "sample_pores",
+    "save_params",
+    "simulate",
+    "stack_params",
+]

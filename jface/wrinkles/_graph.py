@@ -1,0 +1,487 @@
+"""The pore graph (§3.1.1 of Weiss et al. 2023): symmetric k-nearest-neighbour edges between
+pores, stored as half-edges per node, with the list of crossing edges per edge.
+
+Layout (all static capacities with masks, so graphs of different pore counts share shapes):
+
+* nodes ``n`` = the pores' capacity; half-edge slots ``D`` per node (``max_degree``);
+* edges ``E = n · k`` (the largest possible number of symmetric kNN edges);
+* crossing slots ``C`` per edge (``max_crossings``).
+
+Each half-edge ``h`` of node ``v`` stores its target ``t_h``, angle ``θ_h`` (radians in
+``[0, 2π)``, from ``v`` to ``t_h``), length ``d_h`` (UV units) and edge index ``w_h``; each edge
+stores its two nodes ``(a, b)`` with ``a < b``, the vector ``b − a`` (minimum image on a periodic
+domain, so a rasteriser draws the band from ``positions[a]`` to ``positions[a] + delta`` and
+wraps), its length and angle, and the edges that cross it (exact proper segment intersection;
+edges sharing a pore do not cross).
+
+Built with uniform grids (cell lists) in JAX: kNN queries look at the cells within a reach that is
+verified afterwards (an error, not a silently wrong neighbour list, when it is too small); crossing
+candidates are the edges whose midpoints lie within the longest edge length.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, Bool, Float, Int
+
+from jface import _checks
+from jface.wrinkles._sampling import Pores
+
+_CHUNK = 32768  # queries per batch in the kNN and crossing kernels (bounds memory)
+
+
+class GraphSpec(NamedTuple):
+    """Static sizes of a pore graph (fix its array shapes; see :func:`graph_spec`).
+
+    Attributes:
+        k: neighbours per pore before symmetrisation.
+        max_degree: half-edge slots per node ``D``.
+        max_crossings: crossing-edge slots per edge ``C``.
+        knn_grid: cells per side of the kNN grid.
+        knn_cell_capacity: pores per kNN cell.
+        knn_reach: cells searched on each side of a pore's cell.
+        edge_grid: cells per side of the edge-midpoint grid (cell ≥ half the longest edge).
+        edge_cell_capacity: edge midpoints per cell.
+    """
+
+    k: int = 6
+    max_degree: int = 16
+    max_crossings: int = 24
+    knn_grid: int = 1
+    knn_cell_capacity: int = 1
+    knn_reach: int = 1
+    edge_grid: int = 1
+    edge_cell_capacity: int = 1
+
+
+class PoreGraph(eqx.Module):
+    """Symmetric kNN graph of pores as half-edges per node, with crossing lists per edge.
+
+    Attributes:
+        positions: ``(n, 2)`` pore positions (copied from the :class:`Pores`).
+        node_mask: ``(n,)`` valid pores (the first ``node_count``).
+        node_count: number of valid pores.
+        half_target: ``(n, D)`` target node of each half-edge.
+        half_edge: ``(n, D)`` edge index ``w_h`` of each half-edge.
+        half_angle: ``(n, D)`` angle ``θ_h`` in ``[0, 2π)``.
+        half_length: ``(n, D)`` length ``d_h``.
+        half_mask: ``(n, D)`` valid half-edge slots.
+        edge_nodes: ``(E, 2)`` nodes ``(a, b)``, ``a < b``.
+        edge_delta: ``(E, 2)`` vector from ``a`` to ``b`` (minimum image when periodic).
+        edge_length: ``(E,)`` length.
+        edge_angle: ``(E,)`` angle of ``a → b`` in ``[0, 2π)``.
+        edge_mask: ``(E,)`` valid edges (the first ``edge_count``).
+        edge_count: number of valid edges ``|E|``.
+        crossings: ``(E, C)`` indices of the edges crossing each edge.
+        crossing_mask: ``(E, C)`` valid crossing slots.
+        periodic: domain wraps around (static).
+    """
+
+    positions: Float[Array, "*b n 2"]
+    node_mask: Bool[Array, "*b n"]
+    node_count: Int[Array, "*b"]
+    half_target: Int[Array, "*b n D"]
+    half_edge: Int[Array, "*b n D"]
+    half_angle: Float[Array, "*b n D"]
+    half_length: Float[Array, "*b n D"]
+    half_mask: Bool[Array, "*b n D"]
+    edge_nodes: Int[Array, "*b E 2"]
+    edge_delta: Float[Array, "*b E 2"]
+    edge_length: Float[Array, "*b E"]
+    edge_angle: Float[Array, "*b E"]
+    edge_mask: Bool[Array, "*b E"]
+    edge_count: Int[Array, "*b"]
+    crossings: Int[Array, "*b E C"]
+    crossing_mask: Bool[Array, "*b E C"]
+    periodic: bool = eqx.field(static=True, default=False)
+
+    @property
+    def degree(self) -> Int[Array, "*b n"]:
+        return jnp.sum(self.half_mask, axis=-1).astype(jnp.int32)
+
+    def edge_midpoints(self) -> Float[Array, "*b E 2"]:
+        """Midpoints of the edges (wrapped into the unit square when periodic)."""
+        a = jnp.take_along_axis(self.positions, self.edge_nodes[..., :1], axis=-2)
+        mid = a + 0.5 * self.edge_delta
+        return jnp.mod(mid, 1.0) if self.periodic else mid
+
+
+def _wrap(delta, periodic):
+    return delta - jnp.round(delta) if periodic else delta
+
+
+def _bucket(cell_ids, n_cells, cap):
+    """Cell table ``(n_cells + 1, cap)`` of item indices (sentinel = number of items; row
+    ``n_cells`` is empty) and an overflow flag. ``cell_ids`` holds ``n_cells`` for invalid items.
+    Slots are filled by ``cap`` rounds of scatter-min (no sort: XLA's CPU sort is slow)."""
+    table, pending = _scatter_rounds(cell_ids, cell_ids < n_cells, n_cells, cap)
+    return table.at[n_cells].set(cell_ids.shape[0]), jnp.any(pending)
+
+
+def _scatter_rounds(targets, pending, n_rows, cap):
+    """Table ``(n_rows + 1, cap)``: row ``r`` lists (ascending) up to ``cap`` items whose target
+    is ``r`` (sentinel: the number of items); also returns the items left over."""
+    n = targets.shape[0]
+    ids = jnp.arange(n, dtype=jnp.int32)
+
+    def one(q, carry):
+        table, pending = carry
+        row = jnp.where(pending, targets, n_rows)
+        winner = jnp.full(n_rows + 1, n, jnp.int32).at[row].min(ids)
+        table = lax.dynamic_update_slice_in_dim(table, winner[:, None], q, axis=1)
+        return table, pending & (winner[jnp.minimum(targets, n_rows)] != ids)
+
+    table = jnp.full((n_rows + 1, cap), n, jnp.int32)
+    return lax.fori_loop(0, cap, one, (table, pending))
+
+
+def _window(cell_xy, grid, reach, periodic):
+    """Flat ids ``(W,)`` of the cells within ``reach`` of a cell (sentinel outside the grid)."""
+    r = jnp.arange(-reach, reach + 1, dtype=jnp.int32)
+    oy, ox = (a.reshape(-1) for a in jnp.meshgrid(r, r, indexing="ij"))
+    cx = cell_xy[0] + ox
+    cy = cell_xy[1] + oy
+    if periodic:
+        return jnp.mod(cy, grid) * grid + jnp.mod(cx, grid)
+    inside = (cx >= 0) & (cx < grid) & (cy >= 0) & (cy < grid)
+    return jnp.where(inside, cy * grid + cx, grid * grid)
+
+
+def _cells(xy, grid):
+    return jnp.clip(jnp.floor(xy * grid).astype(jnp.int32), 0, grid - 1)
+
+
+def _angle(delta):
+    return jnp.mod(jnp.arctan2(delta[..., 1], delta[..., 0]), 2.0 * math.pi).astype(delta.dtype)
+
+
+def _map_first(f, count, total, chunk):
+    """``vmap(f)`` over indices ``0 .. total-1`` in chunks, computing only the chunks below
+    ``count`` (a traced number of valid items); the rest of the outputs are zeros."""
+    chunk = max(1, min(chunk, total))
+    n_chunks = -(-total // chunk)
+    shapes = jax.eval_shape(jax.vmap(f), jnp.zeros(chunk, jnp.int32))
+    outs = jax.tree.map(lambda sd: jnp.zeros((n_chunks * chunk, *sd.shape[1:]), sd.dtype), shapes)
+
+    def body(c, outs):
+        idx = jnp.minimum(c * chunk + jnp.arange(chunk, dtype=jnp.int32), total - 1)
+        res = jax.vmap(f)(idx)
+        return jax.tree.map(
+            lambda o, r: lax.dynamic_update_slice_in_dim(o, r, c * chunk, axis=0), outs, res
+        )
+
+    outs = lax.fori_loop(0, (count + chunk - 1) // chunk, body, outs)
+    return jax.tree.map(lambda o: o[:total], outs)
+
+
+@functools.partial(jax.jit, static_argnames=("k", "deg", "grid", "cell_cap", "reach", "periodic"))
+def _topology(positions, mask, count, *, k, deg, grid, cell_cap, reach, periodic):
+    n = positions.shape[0]
+    cell = _cells(positions, grid)
+    cid = jnp.where(mask, cell[:, 1] * grid + cell[:, 0], grid * grid)
+    table, cell_overflow = _bucket(cid, grid * grid, cell_cap)
+    pos_table = jnp.concatenate([positions, jnp.zeros((1, 2), positions.dtype)])[table]
+
+    def query(i):  # one pore
+        window = _window(cell[i], grid, reach, periodic)
+        cand = table[window].reshape(-1)
+        delta = _wrap(pos_table[window].reshape(-1, 2) - positions[i], periodic)
+        d2 = jnp.sum(delta * delta, axis=-1)
+        d2 = jnp.where((cand == n) | (cand == i), jnp.inf, d2)
+        neg, idx = lax.top_k(-d2, k)
+        found = jnp.sum(jnp.isfinite(d2)).astype(jnp.int32)
+        return jnp.where(jnp.isfinite(neg), cand[idx], n), -neg, found
+
+    nbr, nd2, found = _map_first(query, count, n, _CHUNK)
+    limit = (reach / grid) ** 2
+    inexact = mask & (nd2[:, -1] > limit) & (found < count - 1)
+
+    # symmetric edge set: entry (i -> j) creates edge {i, j} if i < j or i is not a neighbour of j
+    i = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], (n, k))
+    valid = mask[:, None] & (nbr < n)
+    nbr_safe = jnp.where(valid, nbr, 0)
+    back = nbr[nbr_safe] == i[:, :, None]  # (n, k, k): row j's slot holding i
+    mirrored = valid & jnp.any(back, axis=-1)
+    creates = valid & ((i < nbr) | ~mirrored)
+    n_edges = n * k
+    eid_flat = jnp.where(creates.reshape(-1), jnp.cumsum(creates.reshape(-1)) - 1, n_edges)
+    eid = eid_flat.reshape(n, k).astype(jnp.int32)
+    back_slot = jnp.argmax(back, axis=-1)
+    eid = jnp.where(creates, eid, eid[nbr_safe, back_slot])
+    edge_count = jnp.sum(creates).astype(jnp.int32)
+    edge_a = (
+        jnp.zeros(n_edges, jnp.int32).at[eid_flat].set(jnp.minimum(i, nbr).reshape(-1), mode="drop")
+    )
+    edge_b = (
+        jnp.zeros(n_edges, jnp.int32).at[eid_flat].set(jnp.maximum(i, nbr).reshape(-1), mode="drop")
+    )
+    edge_mask = jnp.arange(n_edges, dtype=jnp.int32) < edge_count
+    edge_delta = _wrap(positions[edge_b] - positions[edge_a], periodic)
+    edge_delta = jnp.where(edge_mask[:, None], edge_delta, 0.0)
+
+    # half-edges: the pore's own k entries, then the entries of pores that list it unmirrored
+    extra = (valid & ~mirrored).reshape(-1)
+    target = nbr_safe.reshape(-1)
+    extra_tab, pending = _scatter_rounds(target, extra, n, max(deg - k, 0))
+    degree_overflow = jnp.any(pending)
+    src_flat = i.reshape(-1)
+    eid_all = eid.reshape(-1)
+    extra_tab = extra_tab[:n]  # (n, deg - k) entry ids
+    extra_ok = extra_tab < n * k
+    extra_safe = jnp.where(extra_ok, extra_tab, 0)
+    half_target = jnp.concatenate([nbr_safe, src_flat[extra_safe]], axis=1)
+    half_edge = jnp.concatenate([eid, eid_all[extra_safe]], axis=1)
+    half_mask = jnp.concatenate([valid, extra_ok], axis=1)
+    half_target = jnp.where(half_mask, half_target, 0)
+    half_edge = jnp.where(half_mask, half_edge, 0)
+    half_delta = _wrap(positions[half_target] - positions[:, None], periodic)
+    half_delta = jnp.where(half_mask[..., None], half_delta, 0.0)
+    half_length = jnp.sqrt(jnp.sum(half_delta * half_delta, axis=-1))
+    edge_length = jnp.sqrt(jnp.sum(edge_delta * edge_delta, axis=-1))
+    topo = dict(
+        half_target=half_target,
+        half_edge=half_edge,
+        half_angle=jnp.where(half_mask, _angle(half_delta), 0.0),
+        half_length=half_length,
+        half_mask=half_mask,
+        edge_nodes=jnp.stack([edge_a, edge_b], axis=-1),
+        edge_delta=edge_delta,
+        edge_length=edge_length,
+        edge_angle=jnp.where(edge_mask, _angle(edge_delta), 0.0),
+        edge_mask=edge_mask,
+        edge_count=edge_count,
+    )
+    flags = dict(cell=cell_overflow, inexact=jnp.any(inexact), degree=degree_overflow)
+    return topo, flags
+
+
+def _crosses(p2, q1, q2):
+    """Proper intersection of segments ``0–p2`` and ``q1–q2`` (touching does not count)."""
+
+    def cross(u, v):
+        return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+    def opposite(x, y):
+        return ((x > 0) & (y < 0)) | ((x < 0) & (y > 0))
+
+    e = q2 - q1
+    return opposite(cross(p2, q1), cross(p2, q2)) & opposite(cross(e, -q1), cross(e, p2 - q1))
+
+
+@functools.partial(jax.jit, static_argnames=("cap", "grid", "cell_cap", "periodic"))
+def _crossing_lists(
+    positions, edge_nodes, edge_delta, edge_mask, edge_count, *, cap, grid, cell_cap, periodic
+):
+    n_edges = edge_nodes.shape[0]
+    pa = positions[edge_nodes[:, 0]]
+    mid = pa + 0.5 * edge_delta
+    if periodic:
+        mid = jnp.mod(mid, 1.0)
+    cell = _cells(mid, grid)
+    cid = jnp.where(edge_mask, cell[:, 1] * grid + cell[:, 0], grid * grid)
+    table, cell_overflow = _bucket(cid, grid * grid, cell_cap)
+    # per-cell data inline, so a query reads contiguous blocks
+    nodes_t = jnp.concatenate([edge_nodes, jnp.full((1, 2), -1, edge_nodes.dtype)])[table]
+    geom = jnp.concatenate([pa, edge_delta], axis=1)
+    geom_t = jnp.concatenate([geom, jnp.zeros((1, 4), geom.dtype)])[table]
+
+    def query(e):  # one edge
+        window = _window(cell[e], grid, 2, periodic)
+        cand = table[window].reshape(-1)
+        nodes_f = nodes_t[window].reshape(-1, 2)
+        g = geom_t[window].reshape(-1, 4)
+        shared = jnp.any(nodes_f[:, :, None] == edge_nodes[e][None, None, :], axis=(-1, -2))
+        q1 = _wrap(g[:, :2] - pa[e], periodic)
+        q2 = q1 + g[:, 2:]
+        hit = _crosses(edge_delta[e], q1, q2) & (cand != n_edges) & ~shared
+        slot = jnp.where(hit, jnp.cumsum(hit) - 1, cap)
+        lists = jnp.zeros(cap, jnp.int32).at[slot].set(cand, mode="drop")
+        return lists, jnp.sum(hit).astype(jnp.int32)
+
+    lists, counts = _map_first(query, edge_count, n_edges, _CHUNK)
+    counts = jnp.where(edge_mask, counts, 0)
+    cmask = jnp.arange(cap, dtype=jnp.int32) < counts[:, None]
+    return jnp.where(cmask, lists, 0), cmask, cell_overflow, jnp.max(counts)
+
+
+def graph_spec(
+    pores: Pores,
+    *,
+    k: int = 6,
+    max_degree: int | None = None,
+    max_crossings: int | None = None,
+    radius_range: tuple[float, float] | None = None,
+    edge_cell_capacity: int | None = None,
+) -> GraphSpec:
+    """Static sizes for :func:`build_graph` from concrete pores.
+
+    The kNN grid has cells of ``r_lo/√2`` (one pore per cell for Poisson-disk pores) and reaches
+    ``(1 + 0.75 √k) · r_hi``; ``radius_range`` (default: the pores' own radii) lets one spec serve
+    several pore sets (e.g. a vmapped batch whose α_d differ: pass the bounds of all of them and
+    explicit ``max_degree``, ``max_crossings`` and ``edge_cell_capacity``).
+
+    Raises:
+        ValueError: ``k`` out of [1, 32], pores without radii, or no valid pore.
+    """
+    if not isinstance(pores, Pores):
+        raise TypeError(f"pores must be Pores, got {_checks.describe(pores)}")
+    k = _checks.integer(k, "k", low=1, high=32)
+    if radius_range is None:
+        count = int(pores.count)
+        if count < 1:
+            raise ValueError("pores has no valid pore")
+        rad = np.asarray(pores.radius)[:count]
+        if not np.all(rad > 0):
+            raise ValueError("pores need positive radii (as sample_pores gives) for graph_spec")
+        radius_range = (float(rad.min()), float(rad.max()))
+    r_lo = _checks.real(radius_range[0], "radius_range[0]", low=0.0, open_low=True)
+    r_hi = _checks.real(radius_range[1], "radius_range[1]", low=r_lo)
+    grid = max(1, math.ceil(math.sqrt(2.0) / r_lo))
+    reach = math.ceil((1.0 + 0.75 * math.sqrt(k)) * r_hi * grid)
+    if pores.periodic:
+        grid = max(grid, 2 * reach + 1)
+    cell_capacity = 1
+    if not _checks.is_traced(pores.positions):
+        cells = np.clip(np.floor(np.asarray(pores.positions) * grid).astype(np.int64), 0, grid - 1)
+        ids = (cells[:, 1] * grid + cells[:, 0])[np.asarray(pores.mask)]
+        cell_capacity = int(np.bincount(ids).max()) if ids.size else 1
+    longest = reach / grid
+    edge_grid = max(1, math.floor(2.0 / longest))
+    if pores.periodic and edge_grid < 5:
+        raise ValueError("the pores are too sparse for a periodic graph (edges longer than 0.4)")
+    if edge_cell_capacity is None:
+        # at most k edges per pore and 2/(√3 r_lo²) pores per unit area, with 50% headroom;
+        # build_graph raises (never drops) if a cell holds more
+        side = 1.0 / edge_grid
+        edge_cell_capacity = max(8, math.ceil(1.5 * k * 2.0 / math.sqrt(3.0) * (side / r_lo) ** 2))
+    return GraphSpec(
+        k=k,
+        max_degree=2 * k + 4
+        if max_degree is None
+        else _checks.integer(max_degree, "max_degree", low=1),
+        max_crossings=4 * k
+        if max_crossings is None
+        else _checks.integer(max_crossings, "max_crossings", low=1),
+        knn_grid=grid,
+        knn_cell_capacity=cell_capacity,
+        knn_reach=reach,
+        edge_grid=edge_grid,
+        edge_cell_capacity=_checks.integer(edge_cell_capacity, "edge_cell_capacity", low=1),
+    )
+
+
+def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> PoreGraph:
+    """The pore graph of §3.1.1: symmetric kNN edges, half-edges per node, crossing lists.
+
+    For each pore its ``k`` nearest pores are found and the undirected edges ``{v_i, v_j}``
+    collected (so every pore has at least ``k`` neighbours, typically a few more); each edge lists
+    the edges that properly cross it. Works under ``jit``/``vmap`` given a ``spec``.
+
+    Args:
+        pores: the nodes (e.g. from :func:`sample_pores`), valid ones first.
+        spec: static sizes; default :func:`graph_spec` ``(pores, k=k)`` (needs concrete pores).
+        k: neighbours per pore when ``spec`` is not given.
+
+    Returns:
+        :class:`PoreGraph` with ``n = pores.capacity`` nodes and ``n · k`` edge slots.
+
+    Raises:
+        ValueError: a capacity of ``spec`` is exceeded (a node with more than ``max_degree``
+            half-edges, an edge with more than ``max_crossings`` crossings, a crowded grid cell)
+            or the kNN reach was too small for an exact answer. Under ``jit`` these raise through
+            ``equinox.error_if``.
+    """
+    if not isinstance(pores, Pores):
+        raise TypeError(f"pores must be Pores, got {_checks.describe(pores)}")
+    auto = spec is None
+    if auto and (_checks.is_traced(pores.positions) or _checks.is_traced(pores.count)):
+        raise ValueError(
+            "build_graph needs an explicit spec=graph_spec(...) under jit/vmap "
+            "(the static sizes cannot be read from traced pores)"
+        )
+    if auto:
+        spec = graph_spec(pores, k=k)
+    if not isinstance(spec, GraphSpec):
+        raise TypeError(f"spec must be a GraphSpec, got {_checks.describe(spec)}")
+    while True:
+        topo, flags = _topology(
+            pores.positions, pores.mask, pores.count, k=spec.k, deg=spec.max_degree,
+            grid=spec.knn_grid, cell_cap=spec.knn_cell_capacity, reach=spec.knn_reach,
+            periodic=pores.periodic,
+        )  # fmt: skip
+        if not auto or _checks.is_traced(flags["inexact"]) or not bool(flags["inexact"]):
+            break
+        if spec.knn_reach >= spec.knn_grid:
+            break
+        spec = spec._replace(knn_reach=min(2 * spec.knn_reach, spec.knn_grid))  # sparse pores
+    if not _checks.is_traced(topo["edge_length"]) and auto:
+        # size the midpoint grid from the longest edge actually present
+        longest = max(float(jnp.max(topo["edge_length"])), 1e-6)
+        edge_grid = max(1, math.floor(2.0 / longest))
+        if pores.periodic and edge_grid < 5:
+            raise ValueError(
+                "the pores are too sparse for a periodic graph (edges longer than 0.4)"
+            )
+        mid = np.asarray(pores.positions)[np.asarray(topo["edge_nodes"][:, 0])] + 0.5 * np.asarray(
+            topo["edge_delta"]
+        )
+        mid = np.mod(mid, 1.0) if pores.periodic else mid
+        cells = np.clip(np.floor(mid * edge_grid).astype(np.int64), 0, edge_grid - 1)
+        ids = (cells[:, 1] * edge_grid + cells[:, 0])[np.asarray(topo["edge_mask"])]
+        spec = spec._replace(
+            edge_grid=edge_grid,
+            edge_cell_capacity=int(np.bincount(ids).max()) if ids.size else 1,
+        )
+    crossings, cmask, edge_overflow, max_cross = _crossing_lists(
+        pores.positions, topo["edge_nodes"], topo["edge_delta"], topo["edge_mask"],
+        topo["edge_count"], cap=spec.max_crossings, grid=spec.edge_grid,
+        cell_cap=spec.edge_cell_capacity, periodic=pores.periodic,
+    )  # fmt: skip
+    flags["edge_cell"] = edge_overflow
+    flags["crossings"] = max_cross > spec.max_crossings
+    messages = {
+        "cell": "a kNN grid cell holds more pores than knn_cell_capacity",
+        "inexact": "the kNN reach is too small for an exact k-nearest-neighbour answer "
+        "(raise GraphSpec.knn_reach)",
+        "degree": f"a pore has more than max_degree={spec.max_degree} half-edges "
+        "(raise GraphSpec.max_degree)",
+        "edge_cell": "an edge-midpoint grid cell holds more edges than edge_cell_capacity",
+        "crossings": f"an edge is crossed by more than max_crossings={spec.max_crossings} edges "
+        "(raise GraphSpec.max_crossings)",
+    }
+    positions = pores.positions
+    if not any(_checks.is_traced(f) for f in flags.values()):
+        for name, flag in flags.items():
+            if bool(flag):
+                detail = ""
+                if name == "crossings":
+                    detail = f" (found {int(max_cross)})"
+                raise ValueError(messages[name] + detail)
+    else:
+        for name, flag in flags.items():
+            positions = eqx.error_if(positions, flag, messages[name])
+    if auto and not _checks.is_traced(topo["half_mask"]):
+        # default sizes: trim the slots to what this graph uses
+        used_deg = max(1, int(jnp.max(jnp.sum(topo["half_mask"], axis=-1))))
+        used_cross = max(1, int(max_cross))
+        order = jnp.argsort(~topo["half_mask"], axis=-1, stable=True)[:, :used_deg]
+        for name in ("half_target", "half_edge", "half_angle", "half_length", "half_mask"):
+            topo[name] = jnp.take_along_axis(topo[name], order, axis=-1)
+        crossings, cmask = crossings[:, :used_cross], cmask[:, :used_cross]
+    return PoreGraph(
+        positions=positions,
+        node_mask=pores.mask,
+        node_count=pores.count,
+        crossings=crossings,
+        crossing_mask=cmask,
+        periodic=pores.periodic,
+        **topo,
+    )

@@ -1,0 +1,244 @@
+"""Trail-formation simulation of the edge weights (§3.1.2, Eq. 1–8 of Weiss et al. 2023).
+
+Per step, ``N`` pores are drawn uniformly at random; each samples one of its half-edges ``h``
+with probability proportional to
+
+    max(0, d_h^(−α_dist) · (p_cont + (1 − α_cont) p_pref − α_cross p_cross))        (Eq. 3)
+
+(Eq. 4–6: continuation reward/similarity penalty against the pore's other edges, the orientation
+sampler of Eq. 1–2, and the summed weight of the crossing edges) and deposits
+``W ← W + Δt α_deposit (1 − W)`` on the chosen edge (Eq. 7). All ``N`` choices of a step see the
+same weights (they run in parallel, as in the paper's CUDA kernel); when ``m`` of them hit one edge
+the deposit compounds exactly: ``W ← 1 − (1 − W)(1 − Δt α_deposit)^m``. Then the global decay
+``W ← W (1 − Δt α_decay N / |E|)`` (Eq. 8) is applied. The whole run is one ``lax.scan``.
+
+Choices where the paper is silent: ``P[θ]`` of Eq. 1 is normalised to a probability density
+over ``[0, 2π)`` (``∫ α_s + exp(−|θ − α_θ|²_π / σ²) dθ = 2π α_s + 2σ√π erf(π / 2σ)``) before it
+enters Eq. 3 as ``p_pref``; ``d_h^(−α_dist)`` is evaluated as ``(d_h / min_h' d_h')^(−α_dist)``,
+which leaves the distribution unchanged (a positive factor per pore) and avoids overflow for tiny
+UV lengths.
+Parameter textures are looked up at the pore for the node terms and at the edge midpoint for
+``deposit``, ``decay`` and ``dt``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
+from jaxtyping import Array, Float
+
+from jface import _checks
+from jface.wrinkles._graph import PoreGraph
+from jface.wrinkles._params import WrinkleParams
+from jface.wrinkles._textures import at
+
+#: Default number of pores sampled per step (the paper's N).
+N_SAMPLES = 50_000
+
+
+def angle_distance(a: ArrayLike, b: ArrayLike, period: float) -> Array:
+    """``|a − b|`` with wrap-around at ``period`` (Eq. 2: ``period = π``; Eq. 4: ``2π``)."""
+    half = 0.5 * period
+    a, b = jnp.asarray(a), jnp.asarray(b, dtype=jnp.result_type(a))
+    return jnp.abs(jnp.mod(a - b + half, period) - half)
+
+
+def orientation_density(
+    angle: ArrayLike, theta: ArrayLike, s: ArrayLike, sigma: ArrayLike
+) -> Array:
+    """The orientation sampler ``P[θ]`` of Eq. 1–2, normalised over ``[0, 2π)``; undirected
+    (``P[θ] = P[θ + π]``)."""
+    d = angle_distance(angle, theta, math.pi)
+    z = 2.0 * math.pi * s + 2.0 * sigma * math.sqrt(math.pi) * jax.scipy.special.erf(
+        math.pi / (2.0 * sigma)
+    )
+    return (s + jnp.exp(-(d * d) / (sigma * sigma))) / z
+
+
+def _gauss(x, sigma):
+    return jnp.exp(-(x * x) / (2.0 * sigma * sigma)) / (sigma * math.sqrt(2.0 * math.pi))
+
+
+def continuation_kernel(
+    graph: PoreGraph, params: WrinkleParams, nodes: ArrayLike
+) -> Float[Array, "N D D"]:
+    """The weights of Eq. 4 for the half-edge pairs of ``nodes``:
+    ``K[h, h'] = α_cont N(|θ_h − (θ_h' + π)|_2π) − α_sim N(|θ_h − θ_h'|_2π)``, zero on the
+    diagonal and on empty slots, so that ``p_cont = K @ W_h'``."""
+    pos = graph.positions[nodes]
+    per = graph.periodic
+    cont = at(params.cont, pos, periodic=per)[:, None, None]
+    sim = at(params.sim, pos, periodic=per)[:, None, None]
+    sigma_c = at(params.sigma_cont, pos, periodic=per)[:, None, None]
+    hm = graph.half_mask[nodes]
+    th = graph.half_angle[nodes]
+    same = angle_distance(th[:, :, None], th[:, None, :], 2.0 * math.pi)  # in [0, π]
+    kern = cont * _gauss(math.pi - same, sigma_c) - sim * _gauss(same, sigma_c)
+    d = hm.shape[-1]
+    return jnp.where(~jnp.eye(d, dtype=bool) & hm[:, None, :] & hm[:, :, None], kern, 0.0)
+
+
+def half_edge_scores(
+    graph: PoreGraph,
+    params: WrinkleParams,
+    weights: ArrayLike,
+    nodes: ArrayLike,
+    kernel: ArrayLike | None = None,
+) -> Float[Array, "N D"]:
+    """Unnormalised probabilities of Eq. 3 for the half-edges of ``nodes`` (N,) given edge
+    ``weights`` (E,); zero on empty slots. ``kernel``: optionally :func:`continuation_kernel` of
+    all pores, reshaped to ``(n, D·D)``."""
+    pos = graph.positions[nodes]
+    per = graph.periodic
+
+    def node(v):
+        return at(v, pos, periodic=per)[:, None]
+
+    theta, s, sigma = node(params.theta), node(params.s), node(params.sigma)
+    dist, cont, sim = node(params.dist), node(params.cont), node(params.sim)
+    cross = node(params.cross)
+    he = graph.half_edge[nodes]
+    hm = graph.half_mask[nodes]
+    th = graph.half_angle[nodes]
+    hl = graph.half_length[nodes]
+    w = jnp.where(hm, weights[he], 0.0)
+
+    def continuation():  # Eq. 4: reward the opposite direction, penalise similar directions
+        if kernel is None:
+            kern = continuation_kernel(graph, params, nodes)
+        else:  # rows of a per-pore table (n, D·D): 2-D gathers are much faster on CPU
+            kern = kernel[nodes].reshape(*hm.shape, hm.shape[-1])
+        return jnp.einsum("nhk,nk->nh", kern, w)
+
+    def crossing():  # Eq. 6: summed weight of the crossing edges
+        flat = he.reshape(-1)  # 2-D row gathers are much faster than 3-D ones on CPU
+        cw = jnp.where(graph.crossing_mask[flat], weights[graph.crossings[flat]], 0.0)
+        return jnp.sum(cw, axis=-1).reshape(he.shape)
+
+    def zeros():
+        return jnp.zeros(hm.shape, w.dtype)
+
+    # the terms cost most; skip them when their parameters are zero everywhere
+    p_cont = jax.lax.cond(jnp.any(cont != 0) | jnp.any(sim != 0), continuation, zeros)
+    p_cross = jax.lax.cond(jnp.any(cross != 0), crossing, zeros)
+    # Eq. 5: orientation sampler
+    p_pref = orientation_density(th, theta, s, sigma)
+    # Eq. 3
+    ref = jnp.min(jnp.where(hm, hl, jnp.inf), axis=-1, keepdims=True)
+    ratio = jnp.where(hm, hl / jnp.where(jnp.isfinite(ref), ref, 1.0), 1.0)
+    dist_factor = jnp.exp(-dist * jnp.log(jnp.maximum(ratio, 1e-12)))
+    score = dist_factor * (p_cont + (1.0 - cont) * p_pref - cross * p_cross)
+    return jnp.where(hm, jnp.maximum(score, 0.0), 0.0)
+
+
+def simulate(
+    key: jax.Array,
+    graph: PoreGraph,
+    params: WrinkleParams,
+    *,
+    n_steps: int = 50,
+    n_samples: int | None = None,
+    weights: ArrayLike | None = None,
+) -> Float[Array, " E"]:
+    """Run the trail-formation simulation and return the edge weights ``W``.
+
+    Implements Eq. 1–8 of Weiss et al. 2023 (see the module docstring). Jit- and vmap-friendly:
+    ``jax.vmap(simulate, in_axes=(0, None, 0))(keys, graph, batched_params)`` runs a batch of
+    parameter sets (e.g. particle-swarm agents) on one graph, and a vmapped graph works too.
+
+    Args:
+        key: a ``jax.random.key``; the same key gives identical weights.
+        graph: the pore graph (:func:`build_graph`).
+        params: one level's :class:`WrinkleParams` (scalars or textures).
+        n_steps: simulation steps (static).
+        n_samples: pores sampled per step, ``N`` (static; default ``min(50000, E)`` with ``E``
+            the graph's edge capacity). ``Δt α_decay N`` must not exceed ``|E|``.
+        weights: optional ``(E,)`` starting weights in [0, 1] (default zeros), e.g. to continue a
+            run.
+
+    Returns:
+        ``(E,)`` weights in ``[0, 1]``, zero on invalid edge slots.
+
+    Raises:
+        TypeError/ValueError: wrong types, non-positive sizes, weights of the wrong shape or out
+            of [0, 1], or a decay factor ``1 − Δt α_decay N/|E|`` below zero.
+    """
+    key = _checks.key(key)
+    if not isinstance(graph, PoreGraph):
+        raise TypeError(f"graph must be a PoreGraph, got {_checks.describe(graph)}")
+    if not isinstance(params, WrinkleParams):
+        raise TypeError(f"params must be WrinkleParams, got {_checks.describe(params)}")
+    n_edges = graph.edge_mask.shape[-1]
+    n_steps = _checks.integer(n_steps, "n_steps", low=0)
+    if n_samples is None:
+        n_samples = min(N_SAMPLES, n_edges)
+    n_samples = _checks.integer(n_samples, "n_samples", low=1)
+    if weights is None:
+        w0 = jnp.zeros(n_edges, jnp.float32)
+    else:
+        w0 = _checks.float_array(weights, "weights", ndim=1, dtype=jnp.float32)
+        if w0.shape[0] != n_edges:
+            raise ValueError(f"weights must have shape ({n_edges},), got {_checks.describe(w0)}")
+        if not _checks.is_traced(w0) and bool(np.any((np.asarray(w0) < 0) | (np.asarray(w0) > 1))):
+            raise ValueError("weights must lie in [0, 1]")
+    leaves = (params.dt, params.decay, graph.edge_count)
+    if not any(_checks.is_traced(x) for x in leaves):
+        rate = float(np.max(params.dt)) * float(np.max(params.decay))
+        worst = rate * n_samples
+        count = int(graph.edge_count)
+        if count > 0 and worst > count:
+            raise ValueError(
+                f"n_samples={n_samples} is too large for a graph of {count} edges: the decay "
+                f"factor 1 - dt·decay·N/|E| = {1 - worst / count:.3g} would be negative "
+                f"(use n_samples ≤ {int(count / rate)})"
+            )
+    return _simulate(key, graph, params, w0, n_steps=n_steps, n_samples=n_samples)
+
+
+@functools.partial(jax.jit, static_argnames=("n_steps", "n_samples"))
+def _simulate(key, graph, params, w0, *, n_steps, n_samples):
+    per = graph.periodic
+    mid = graph.edge_midpoints()
+    deposit = at(params.deposit, mid, periodic=per)
+    decay = at(params.decay, mid, periodic=per)
+    dt = at(params.dt, mid, periodic=per)
+    log_keep = jnp.log1p(-dt * deposit)  # per hit: 1 - W is multiplied by (1 - Δt α_deposit)
+    n_edges = graph.edge_mask.shape[0]
+    n_valid = jnp.maximum(graph.edge_count, 1).astype(jnp.float32)
+    fade = jnp.maximum(0.0, 1.0 - dt * decay * (n_samples / n_valid))
+    n_nodes, d = graph.half_mask.shape
+    # Eq. 4's kernel depends only on the graph and the parameters: precompute it per pore when it
+    # fits in memory (2^25 entries), else evaluate it for the sampled pores each step
+    table = None
+    if n_nodes * d * d <= 2**25:
+        all_nodes = jnp.arange(n_nodes, dtype=jnp.int32)
+        table = jax.lax.cond(
+            jnp.any(params.cont != 0) | jnp.any(params.sim != 0),
+            lambda: continuation_kernel(graph, params, all_nodes).reshape(n_nodes, d * d),
+            lambda: jnp.zeros((n_nodes, d * d), jnp.float32),
+        )
+
+    def step(w, key):
+        k_node, k_pick = jax.random.split(key)
+        nodes = jax.random.randint(
+            k_node, (n_samples,), 0, jnp.maximum(graph.node_count, 1), dtype=jnp.int32
+        )
+        score = half_edge_scores(graph, params, w, nodes, table)
+        cum = jnp.cumsum(score, axis=-1)
+        total = cum[:, -1]
+        u = jax.random.uniform(k_pick, (n_samples,), dtype=jnp.float32) * total
+        pick = jnp.minimum(jnp.sum(cum <= u[:, None], axis=-1), d - 1)
+        edge = jnp.take_along_axis(graph.half_edge[nodes], pick[:, None], axis=-1)[:, 0]
+        edge = jnp.where(total > 0, edge, n_edges)
+        hits = jnp.zeros(n_edges, jnp.float32).at[edge].add(1.0, mode="drop")
+        w = 1.0 - (1.0 - w) * jnp.exp(hits * log_keep)  # Eq. 7, compounded over the hits
+        w = w * fade  # Eq. 8
+        return jnp.where(graph.edge_mask, w, 0.0), None
+
+    w, _ = jax.lax.scan(step, jnp.where(graph.edge_mask, w0, 0.0), jax.random.split(key, n_steps))
+    return jnp.clip(w, 0.0, 1.0)

@@ -1,0 +1,50 @@
+"""Perlin noise: range, determinism, seamless tiling, traced frequency, bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jface.noise import perlin, perlin_at
+
+
+def test_grid_range_mean_and_determinism(key):
+    a = perlin(key, (128, 96), frequency=8, octaves=3)
+    b = perlin(key, (128, 96), frequency=8, octaves=3)
+    c = perlin(jax.random.key(1), (128, 96), frequency=8, octaves=3)
+    assert a.shape == (128, 96) and a.dtype == jnp.float32
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+    assert float(jnp.max(jnp.abs(a))) <= 1.0
+    assert abs(float(jnp.mean(a))) < 0.1 and 0.1 < float(jnp.std(a)) < 0.5
+
+
+def test_periodic_noise_tiles_and_is_zero_on_lattice(key):
+    y = jnp.linspace(0.0, 1.0, 17, dtype=jnp.float32)
+    left = perlin_at(key, jnp.stack([jnp.zeros_like(y), y], -1), frequency=5, periodic=True)
+    right = perlin_at(key, jnp.stack([jnp.ones_like(y), y], -1), frequency=5, periodic=True)
+    np.testing.assert_allclose(left, right, atol=1e-6)
+    lattice = jnp.stack(jnp.meshgrid(jnp.arange(5.0) / 5, jnp.arange(5.0) / 5), -1)
+    np.testing.assert_allclose(
+        perlin_at(key, lattice.astype(jnp.float32), frequency=5), 0, atol=1e-6
+    )
+
+
+def test_smooth_and_frequency_may_be_traced(key):
+    pts = jax.random.uniform(jax.random.key(3), (200, 2), dtype=jnp.float32)
+    eager = perlin_at(key, pts, frequency=3.5, octaves=2)
+    traced = jax.jit(lambda f: perlin_at(key, pts, frequency=f, octaves=2))(jnp.float32(3.5))
+    np.testing.assert_allclose(eager, traced, atol=1e-6)
+    near = perlin_at(key, pts + 1e-4, frequency=3.5, octaves=2)
+    assert float(jnp.max(jnp.abs(near - eager))) < 0.01  # continuous
+
+
+def test_bad_input(key, unchecked):
+    with pytest.raises(ValueError, match="frequency"):
+        perlin(key, (8, 8), frequency=0.0)
+    with pytest.raises(ValueError, match="whole number"):
+        perlin(key, (8, 8), frequency=2.5, periodic=True)
+    with pytest.raises(ValueError, match="octaves"):
+        perlin(key, (8, 8), frequency=2, octaves=0)
+    with pytest.raises(ValueError, match="points"):
+        perlin_at(key, jnp.zeros((4, 3), jnp.float32), frequency=2)

@@ -1,0 +1,105 @@
+"""Pore graph: kNN edges vs scipy, crossing lists vs brute force, half-edge consistency."""
+
+import jax
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from jface.wrinkles import build_graph, graph_spec, make_pores, sample_pores
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["open", "periodic"])
+def pores_graph(request):
+    pores = sample_pores(jax.random.key(0), 0.02, periodic=request.param)
+    return pores, build_graph(pores)
+
+
+def _brute_crossings(x, nodes, delta, periodic):
+    """All properly crossing edge pairs, in float64, by a direct O(E²) test."""
+
+    def cross(u, v):
+        return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+    def opposite(s, t):
+        return ((s > 0) & (t < 0)) | ((s < 0) & (t > 0))
+
+    a = x[nodes[:, 0]]
+    out = []
+    for lo in range(0, len(nodes), 1000):
+        q1 = a[None, :, :] - a[lo : lo + 1000, None, :]
+        if periodic:
+            q1 -= np.round(q1)
+        q2 = q1 + delta[None]
+        p2 = delta[lo : lo + 1000, None]
+        hit = opposite(cross(p2, q1), cross(p2, q2)) & opposite(
+            cross(q2 - q1, -q1), cross(q2 - q1, p2 - q1)
+        )
+        e = nodes[lo : lo + 1000]
+        shared = (e[:, None, :, None] == nodes[None, :, None, :]).any(axis=(-1, -2))
+        out.append(hit & ~shared)
+    return np.concatenate(out)
+
+
+def test_edges_are_symmetric_knn(pores_graph):
+    pores, graph = pores_graph
+    n = int(pores.count)
+    x = np.asarray(pores.positions, np.float64)[:n]
+    _, nn = cKDTree(x, boxsize=1.0 if pores.periodic else None).query(x, 7)
+    ref = {(min(i, j), max(i, j)) for i in range(n) for j in nn[i, 1:]}
+    e = int(graph.edge_count)
+    nodes = np.asarray(graph.edge_nodes)[:e]
+    assert {tuple(p) for p in nodes.tolist()} == ref and len(ref) == e
+    assert np.all(nodes[:, 0] < nodes[:, 1])
+    assert int(graph.degree[:n].min()) >= 6
+
+
+def test_crossing_lists_equal_brute_force(pores_graph):
+    pores, graph = pores_graph
+    e = int(graph.edge_count)
+    x = np.asarray(pores.positions, np.float64)
+    nodes = np.asarray(graph.edge_nodes)[:e]
+    ref = _brute_crossings(x, nodes, np.asarray(graph.edge_delta, np.float64)[:e], pores.periodic)
+    lists, mask = np.asarray(graph.crossings)[:e], np.asarray(graph.crossing_mask)[:e]
+    assert ref.sum() > 100
+    for i in range(e):
+        assert set(lists[i][mask[i]].tolist()) == set(np.nonzero(ref[i])[0].tolist())
+    assert not np.asarray(graph.crossing_mask)[e:].any()
+
+
+def test_half_edges_match_edges(pores_graph):
+    pores, graph = pores_graph
+    n = int(pores.count)
+    hm = np.asarray(graph.half_mask)
+    assert hm.sum() == 2 * int(graph.edge_count) and not hm[n:].any()
+    v, slot = np.nonzero(hm)
+    t = np.asarray(graph.half_target)[v, slot]
+    e = np.asarray(graph.half_edge)[v, slot]
+    nodes = np.asarray(graph.edge_nodes)[e]
+    np.testing.assert_array_equal(np.sort(np.stack([v, t], 1), 1), nodes)
+    x = np.asarray(pores.positions, np.float64)
+    delta = x[t] - x[v]
+    if pores.periodic:
+        delta -= np.round(delta)
+    np.testing.assert_allclose(
+        np.asarray(graph.half_length)[v, slot], np.hypot(*delta.T), atol=1e-6
+    )
+    ang = np.mod(np.arctan2(delta[:, 1], delta[:, 0]), 2 * np.pi)
+    diff = np.angle(np.exp(1j * (np.asarray(graph.half_angle)[v, slot] - ang)))
+    np.testing.assert_allclose(diff, 0, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(graph.edge_length)[e], np.hypot(*delta.T), atol=1e-6)
+
+
+def test_capacity_overflow_raises(unchecked):
+    pores = sample_pores(jax.random.key(0), 0.02)
+    with pytest.raises(ValueError, match="max_crossings"):
+        build_graph(pores, graph_spec(pores, max_crossings=1))
+
+
+def test_tiny_graph_and_bad_input(unchecked):
+    pores = make_pores(np.array([[0.2, 0.2], [0.4, 0.3], [0.3, 0.6]], np.float32), radius=0.1)
+    graph = build_graph(pores, k=2)
+    assert int(graph.edge_count) == 3
+    with pytest.raises(TypeError, match="Pores"):
+        build_graph(np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="k must be"):
+        graph_spec(pores, k=0)

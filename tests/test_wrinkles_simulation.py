@@ -1,0 +1,186 @@
+"""Trail simulation: the behaviours of §3.1.2 / Fig. 5–6, weights in [0, 1], determinism, vmap,
+exact compounding of deposits; parameters: ranges, textures, JSON, Perlin variation."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jface.wrinkles import (
+    WrinkleParams,
+    build_graph,
+    load_params,
+    make_pores,
+    params_from_json,
+    params_to_json,
+    perlin_variation,
+    sample_pores,
+    save_params,
+    simulate,
+    stack_params,
+)
+
+STEPS, SAMPLES = 60, 2000
+
+
+@pytest.fixture(scope="module")
+def graph():
+    return build_graph(sample_pores(jax.random.key(0), 0.02, periodic=True))
+
+
+def run(graph, seed=1, **changes):
+    return np.asarray(
+        simulate(
+            jax.random.key(seed), graph, WrinkleParams(**changes), n_steps=STEPS, n_samples=SAMPLES
+        )
+    )
+
+
+def _valid(graph, w):
+    return w[: int(graph.edge_count)]
+
+
+def test_weights_in_unit_interval_and_deterministic(graph):
+    w = run(graph)
+    assert w.min() >= 0 and w.max() <= 1 and w.max() > 0.3
+    assert not w[int(graph.edge_count) :].any()
+    np.testing.assert_array_equal(w, run(graph))
+    assert not np.array_equal(w, run(graph, seed=2))
+    np.testing.assert_array_equal(
+        run(graph, deposit=1.0, decay=0.0).clip(0, 1), run(graph, deposit=1.0, decay=0.0)
+    )
+
+
+def _axial(graph, w):
+    w = _valid(graph, w)
+    z = np.sum(w * np.exp(2j * np.asarray(graph.edge_angle)[: len(w)])) / w.sum()
+    return np.angle(z) / 2, abs(z)
+
+
+def test_orientation_concentrates_around_primary_angle(graph):
+    mean, strength = _axial(graph, run(graph, s=0.0, theta=1.0))
+    assert abs(mean - 1.0) < 0.1 and strength > 0.6
+    _, uniform = _axial(graph, run(graph, s=1.0, theta=1.0))
+    assert uniform < 0.5 * strength
+
+
+def _crossing_weight(graph, w):
+    e = int(graph.edge_count)
+    cr, cm = np.asarray(graph.crossings)[:e], np.asarray(graph.crossing_mask)[:e]
+    return float(np.sum(w[:e, None] * np.where(cm, w[cr], 0.0)))
+
+
+def test_crossing_penalty_lowers_crossing_weight(graph):
+    assert _crossing_weight(graph, run(graph, cross=1.0)) < 0.3 * _crossing_weight(
+        graph, run(graph)
+    )
+
+
+def test_distance_exponent_favours_short_edges(graph):
+    length = np.asarray(graph.edge_length)[: int(graph.edge_count)]
+
+    def mean_length(w):
+        w = _valid(graph, w)
+        return np.sum(w * length) / np.sum(w)
+
+    assert mean_length(run(graph, dist=5.0)) < 0.95 * mean_length(run(graph))
+
+
+def test_similarity_penalty_and_continuation(graph):
+    # α_sim penalises similar directions at a pore: fewer same-side pairs of strong edges
+    assert _crossing_weight(graph, run(graph, sim=2.0)) < _crossing_weight(graph, run(graph))
+    w0, w1 = run(graph), run(graph, cont=0.01)
+    assert not np.array_equal(w0, w1)
+
+
+def test_texture_parameter_sets_orientation_locally(graph):
+    theta = np.zeros((8, 8), np.float32)
+    theta[:, 4:] = math.pi / 2
+    w = run(graph, s=0.0, theta=theta)
+    mid = np.asarray(graph.edge_midpoints())[: int(graph.edge_count)]
+    ang = np.asarray(graph.edge_angle)[: int(graph.edge_count)]
+    w = _valid(graph, w)
+    left = (mid[:, 0] > 0.1) & (mid[:, 0] < 0.4)
+    right = (mid[:, 0] > 0.6) & (mid[:, 0] < 0.9)
+    for sel, target in ((left, 0.0), (right, math.pi / 2)):
+        z = np.sum(w[sel] * np.exp(2j * ang[sel]))
+        assert abs(np.angle(z * np.exp(-2j * target))) / 2 < 0.15  # axial: modulo π
+
+
+def test_vmap_over_parameter_sets_equals_loop(graph):
+    sets = [WrinkleParams(deposit=0.3, cross=0.5), WrinkleParams(deposit=0.8, dist=2.0)]
+    keys = jax.random.split(jax.random.key(4), 2)
+    batch = jax.vmap(lambda k, p: simulate(k, graph, p, n_steps=20, n_samples=SAMPLES))(
+        keys, stack_params(sets)
+    )
+    for i, p in enumerate(sets):
+        np.testing.assert_allclose(
+            batch[i], simulate(keys[i], graph, p, n_steps=20, n_samples=SAMPLES), atol=1e-6
+        )
+
+
+def test_deposits_on_one_edge_compound_exactly():
+    pores = make_pores(np.array([[0.3, 0.5], [0.6, 0.5]], np.float32), radius=0.2)
+    graph = build_graph(pores, k=1)
+    assert int(graph.edge_count) == 1
+    params = WrinkleParams(deposit=0.5, decay=0.0)
+    w = simulate(jax.random.key(0), graph, params, n_steps=1, n_samples=37)
+    np.testing.assert_allclose(w[0], 1 - (1 - 0.03 * 0.5) ** 37, rtol=1e-5)
+    w = simulate(
+        jax.random.key(0), graph, WrinkleParams(deposit=0.5, decay=0.2), n_steps=3, n_samples=10
+    )
+    expect = 0.0
+    for _ in range(3):
+        expect = (1 - (1 - expect) * (1 - 0.015) ** 10) * (1 - 0.03 * 0.2 * 10)
+    np.testing.assert_allclose(w[0], expect, rtol=1e-5)
+
+
+def test_parameters_validated_and_json_round_trip(tmp_path, unchecked):
+    with pytest.raises(ValueError, match=r"WrinkleParams.cross must be in \[0.0, 1.0\]"):
+        WrinkleParams(cross=1.5)
+    with pytest.raises(ValueError, match=r"WrinkleParams\.d must be in"):
+        WrinkleParams(d=np.full((4, 4), 0.2, np.float32))
+    with pytest.raises(ValueError, match="scalar or a 2-D texture"):
+        WrinkleParams(theta=np.zeros(3, np.float32))
+    with pytest.raises(ValueError, match="unknown"):
+        WrinkleParams().replace(speed=1.0)
+    levels = [
+        WrinkleParams(d=0.02, theta=np.full((2, 3), 0.5, np.float32)),
+        WrinkleParams(d=0.01, sim=1.0),
+    ]
+    back = params_from_json(params_to_json(levels))
+    for a, b in zip(levels, back, strict=True):
+        jax.tree.map(np.testing.assert_array_equal, a, b)
+    save_params(tmp_path / "p.json", levels)
+    jax.tree.map(np.testing.assert_array_equal, levels[1], load_params(tmp_path / "p.json")[1])
+    with pytest.raises(ValueError, match="not a WrinkleParams"):
+        params_from_json('{"kind": "other"}')
+    defaults = WrinkleParams()
+    assert float(defaults.deposit) == 0.25 and float(defaults.decay) == 0.5
+    assert all(float(getattr(defaults, n)) == 0 for n in ("dist", "cont", "sim", "cross"))
+
+
+def test_perlin_variation_gives_textures_in_range(key):
+    varied = perlin_variation(key, WrinkleParams(), {"d": 0.05, "cont": 0.3}, resolution=32)
+    assert varied.d.shape == (32, 32) and varied.cont.shape == (32, 32)
+    assert float(varied.d.min()) >= 0.001 and float(varied.d.max()) <= 0.05
+    assert float(jnp.std(varied.d)) > 1e-4
+    assert varied.theta.shape == ()
+
+
+def test_bad_simulation_input(graph, unchecked):
+    with pytest.raises(ValueError, match="decay factor"):
+        simulate(jax.random.key(0), graph, WrinkleParams(decay=1.0), n_samples=10**7)
+    with pytest.raises(TypeError, match="WrinkleParams"):
+        simulate(jax.random.key(0), graph, {"deposit": 0.3})
+    with pytest.raises(TypeError, match="random key"):
+        simulate(0, graph, WrinkleParams())
+    with pytest.raises(ValueError, match="weights must"):
+        simulate(
+            jax.random.key(0),
+            graph,
+            WrinkleParams(),
+            weights=np.full(graph.edge_mask.shape, 2.0, np.float32),
+        )
