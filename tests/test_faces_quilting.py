@@ -1,5 +1,7 @@
 """Patch libraries, non-stationary quilting, Poisson blending and editing (Mohammed et al. 2009)."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -268,3 +270,46 @@ def test_guided_edit_changes_only_the_painted_region(lfw, library, unchecked):
         faces.guided_edit(jax.random.key(7), library, face, face)
     with pytest.raises(ValueError, match="mask must have shape"):
         faces.inpaint(jax.random.key(7), library, face, np.ones((5, 5), bool), face)
+
+
+# --- command line ---------------------------------------------------------------------------
+
+
+def test_cli_sample_inpaint_edit(lfw, tmp_path, capsys):
+    from jface import io
+    from jface.cli import main
+
+    folder = tmp_path / "faces"
+    for i in range(40):
+        io.write_png(folder / f"{i:03d}.png", lfw[i])
+    common = ["--grid", "5", "--translations", "0", "--angles", "--seed", "1"]
+    out = tmp_path / "sample"
+    assert main(["quilt", "sample", str(folder), "--n", "2", "--out", str(out), *common]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["nn_distance"]) == 2 and all(d > 0 for d in summary["nn_distance"])
+    assert io.read_image(out / "face_001.png").shape == (25, 25)
+    assert (out / "sources.png").is_file() and (out / "faces.png").is_file()
+
+    mask = np.zeros((25, 25), np.float32)
+    mask[:8] = 1.0
+    io.write_png(tmp_path / "mask.png", mask)
+    face = folder / "039.png"
+    args = ["--image", str(face), "--mask", str(tmp_path / "mask.png"), "--n", "2", *common]
+    out = tmp_path / "inpaint"
+    assert main(["quilt", "inpaint", str(folder), "--out", str(out), *args]) == 0
+    inpainted = io.read_image(out / "inpainted_001.png")
+    np.testing.assert_array_equal(inpainted[8:], io.read_image(face)[8:])
+
+    painted = io.read_image(face)
+    painted[16:18, 8:17] = 0.0
+    io.write_png(tmp_path / "painted.png", painted)
+    out = tmp_path / "edit"
+    edit = ["--image", str(face), "--painted", str(tmp_path / "painted.png"), *common]
+    assert main(["quilt", "edit", str(folder), "--out", str(out), *edit]) == 0
+    assert io.read_image(out / "edited.png").shape == (25, 25)
+
+    io.write_png(tmp_path / "small.png", lfw[0, :20])
+    capsys.readouterr()
+    bad = ["--image", str(tmp_path / "small.png"), "--mask", str(tmp_path / "mask.png")]
+    assert main(["quilt", "inpaint", str(folder), "--out", str(out), *bad, *common]) == 2
+    assert "--image must have the training faces' shape" in capsys.readouterr().err

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
@@ -26,7 +25,7 @@ from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jface import _checks
 from jface.faces import _poisson
-from jface.faces._patches import PatchLibrary, face_image, from_canvas, to_canvas, training_images
+from jface.faces._patches import PatchLibrary, face_image, to_canvas, training_images
 from jface.faces._quilting import (
     LAM,
     QuiltResult,
@@ -252,20 +251,14 @@ def distinct_sources(result: QuiltResult) -> int:
     return int(np.unique(src[src >= 0]).size)
 
 
-def source_map(result: QuiltResult, library: PatchLibrary) -> Int[Array, "H W"]:
-    """Per-pixel source training image (that of the last patch placed over it; ``-1`` where no
-    patch was placed): the paper's Fig. 8 colour map, ready for a colour table."""
+def source_map(result: QuiltResult, library: PatchLibrary) -> Int[Array, "*batch H W"]:
+    """Per-pixel source training image: that of the last patch placed over the pixel in raster
+    order (``-1`` where no patch was placed); the paper's Fig. 8 colour map, ready for a colour
+    table. ``result`` may carry leading batch axes (from ``vmap``); so does the map."""
     library = check_library(library)
     g = library.geometry
-    out = -jnp.ones(g.canvas, jnp.int32)
-
-    def place(out, rc):
-        r, c = rc // g.grid[1], rc % g.grid[1]
-        src = result.sources[r, c]
-        y0, x0 = g.origin(r, c)
-        window = jax.lax.dynamic_slice(out, (y0, x0), g.patch)
-        new = jnp.where(src >= 0, jnp.full(g.patch, src, jnp.int32), window)
-        return jax.lax.dynamic_update_slice(out, new, (y0, x0)), None
-
-    out, _ = jax.lax.scan(place, out, jnp.arange(g.grid[0] * g.grid[1], dtype=jnp.int32))
-    return from_canvas(out, g)
+    rows = np.minimum(np.arange(g.canvas[0]) // g.step[0], g.grid[0] - 1)
+    cols = np.minimum(np.arange(g.canvas[1]) // g.step[1], g.grid[1] - 1)
+    sources = jnp.asarray(result.sources)
+    out = sources[..., rows[:, None], cols[None, :]]
+    return out[..., : g.image_shape[0], : g.image_shape[1]]

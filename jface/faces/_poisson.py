@@ -112,6 +112,32 @@ def _solve_rectangle(grad_x: Array, grad_y: Array, boundary: Array) -> Array:
     return boundary.at[1:-1, 1:-1].set(inner)
 
 
+def _pcg(operator, precondition, b: Array, x0: Array, tol: Array, maxiter: int) -> Array:
+    """Preconditioned conjugate gradients until ``|r| <= tol |b|`` or ``maxiter`` steps."""
+    dot = jnp.vdot
+    r = b - operator(x0)
+    z = precondition(r)
+    stop = (tol * jnp.sqrt(dot(b, b))) ** 2
+
+    def cond(state):
+        _, r, _, _, _, k = state
+        return (dot(r, r) > stop) & (k < maxiter)
+
+    def body(state):
+        x, r, z, p, rz, k = state
+        ap = operator(p)
+        alpha = rz / dot(p, ap)
+        x = x + alpha * p
+        r = r - alpha * ap
+        z = precondition(r)
+        rz_new = dot(r, z)
+        p = z + (rz_new / rz) * p
+        return x, r, z, p, rz_new, k + 1
+
+    state = (x0, r, z, z, dot(r, z), jnp.zeros((), jnp.int32))
+    return jax.lax.while_loop(cond, body, state)[0]
+
+
 @functools.partial(jax.jit, static_argnames=("maxiter",))
 def _solve_masked(
     grad_x: Array, grad_y: Array, boundary: Array, mask: Array, tol: Array, maxiter: int
@@ -133,10 +159,7 @@ def _solve_masked(
         inner = jnp.zeros_like(r).at[1:-1, 1:-1].set(dirichlet_solve(r[1:-1, 1:-1]))
         return m * (inner + edge * r / count)
 
-    x0 = boundary * m
-    x, _ = jax.scipy.sparse.linalg.cg(
-        operator, rhs, x0=x0, tol=tol, atol=0.0, maxiter=maxiter, M=precondition
-    )
+    x = _pcg(operator, precondition, rhs, boundary * m, tol, maxiter)
     return jnp.where(mask, x, boundary)
 
 
