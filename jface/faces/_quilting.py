@@ -105,6 +105,27 @@ def assemble_gradients(
     return gx, gy
 
 
+@jax.custom_batching.custom_vmap
+def library_cost(
+    library: Float[Array, "P D"], weight: Float[Array, " D"], pull: Float[Array, " D"]
+) -> Float[Array, " P"]:
+    """``Σ_d w_d L_pd² - 2 Σ_d L_pd v_d`` for every library patch ``L_p``: the weighted SSD to a
+    reference up to a constant. One fused pass over the library (memory bound); under ``vmap``
+    over faces (library shared) it becomes two matrix products that read the library once for
+    the whole batch."""
+    return jnp.sum(library * (library * weight - 2 * pull), axis=1)
+
+
+@library_cost.def_vmap
+def _library_cost_batched(axis_size, in_batched, library, weight, pull):
+    lib_batched, w_batched, v_batched = in_batched
+    w = weight if w_batched else jnp.broadcast_to(weight, (axis_size, *weight.shape))
+    v = pull if v_batched else jnp.broadcast_to(pull, (axis_size, *pull.shape))
+    if lib_batched:
+        return jnp.sum(library * (library * w[:, None] - 2 * v[:, None]), axis=2), True
+    return ((library * library) @ w.T - 2 * (library @ v.T)).T, True
+
+
 def _poisson_channels(gx: Array, gy: Array, boundary: Array, region: Array | None) -> Array:
     def one(a, b, c):
         if region is None:
@@ -155,7 +176,7 @@ def _quilt(
         wk = jnp.broadcast_to(kwin[..., None], window.shape).astype(dtype).ravel()
         q, tq = window.ravel(), twin.ravel()
         # cost = Σ (wk + λ) P² - 2 Σ P (wk q + λ t) + const  (two mat-vecs over the library)
-        cost = (library * library) @ (wk + lam) - 2 * library @ (wk * q + lam * tq)
+        cost = library_cost(library, wk + lam, wk * q + lam * tq)
         cost = cost + jnp.sum(wk * q * q) + lam * jnp.sum(tq * tq)
 
         ok = allowed
@@ -169,8 +190,13 @@ def _quilt(
         n_ok = jnp.sum(jnp.isfinite(neg)).astype(jnp.int32)
         pick = best[jax.random.randint(k_pick, (), 0, jnp.maximum(n_ok, 1), dtype=jnp.int32)]
         free = ~jnp.any(kwin) & (lam == 0)
-        anyone = jax.random.categorical(k_free, jnp.where(ok, 0.0, -jnp.inf).astype(dtype))
-        choice = jnp.where(free, anyone.astype(jnp.int32), pick.astype(jnp.int32))
+        choice = jax.lax.cond(  # nothing to match yet and no target: any allowed patch
+            free,
+            lambda: jax.random.categorical(
+                k_free, jnp.where(ok, 0.0, -jnp.inf).astype(dtype)
+            ).astype(jnp.int32),
+            lambda: pick.astype(jnp.int32),
+        )
 
         patch = patches[r, c, choice]
         go = active[r, c]
