@@ -313,3 +313,32 @@ def test_cli_sample_inpaint_edit(lfw, tmp_path, capsys):
     bad = ["--image", str(tmp_path / "small.png"), "--mask", str(tmp_path / "mask.png")]
     assert main(["quilt", "inpaint", str(folder), "--out", str(out), *bad, *common]) == 2
     assert "--image must have the training faces' shape" in capsys.readouterr().err
+
+
+# --- with the global factor models (run when jface.faces has them) ---------------------------
+
+
+@pytest.fixture(scope="module")
+def factor_models(lfw):
+    pytest.importorskip("jface.faces._fa", reason="the factor models are not in this copy")
+    fa = faces.fit_factor_analyser(lfw, 8, n_iter=20).model
+    mofa = faces.fit_mixture(jax.random.key(0), lfw, 2, 4, n_iter=10).model
+    return fa, mofa
+
+
+def test_synthesis_from_factor_models(lfw, library, factor_models):
+    fa, mofa = factor_models
+    out, target, comp = faces.synthesize(jax.random.key(8), library, fa)
+    assert int(comp) == 0 and target.shape == (25, 25)
+    assert float(faces.target_distance(out.image, target)) < 0.2
+    assignment = faces.assign_components(mofa, lfw)
+    out, target, comp = faces.synthesize(jax.random.key(9), library, mofa, assignment=assignment)
+    src = np.asarray(out.sources)
+    assert (np.asarray(assignment)[src] == int(comp)).all()  # only the component's images
+    results, targets = faces.inpaint_hypotheses(
+        jax.random.key(10), library, fa, lfw[5], np.arange(25)[:, None] < np.full((25, 25), 8), 2
+    )
+    assert results.image.shape == (2, 25, 25) and targets.shape == (2, 25, 25)
+    np.testing.assert_array_equal(
+        np.asarray(results.image)[:, 8:], np.broadcast_to(lfw[5, 8:], (2, 17, 25))
+    )
