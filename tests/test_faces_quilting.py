@@ -342,3 +342,19 @@ def test_synthesis_from_factor_models(lfw, library, factor_models):
     np.testing.assert_array_equal(
         np.asarray(results.image)[:, 8:], np.broadcast_to(lfw[5, 8:], (2, 17, 25))
     )
+
+
+def test_restyle_with_bilinear_model(lfw, factor_models):
+    # two "styles" of every individual: as photographed, and darker with more contrast
+    styled = np.clip(1.3 * lfw - 0.25, 0, 1).astype(np.float32)
+    model = faces.fit_bilinear(np.stack([lfw, styled], axis=1), 8, n_iter=20).model
+    library = faces.build_library(styled, GRID, translations=0, angles=())
+    out, prediction = faces.restyle(jax.random.key(11), library, model, lfw[7], n_best=2)
+    assert prediction.shape == (25, 25)
+    # the result is in the target style: nearer the styled face than the original face
+    to_styled = float(faces.target_distance(out.image, styled[7]))
+    assert to_styled < float(faces.target_distance(out.image, lfw[7]))
+    mouth = np.zeros((25, 25), bool)
+    mouth[15:21, 6:19] = True
+    part, _ = faces.restyle(jax.random.key(11), library, model, lfw[7], mouth, n_best=2)
+    np.testing.assert_array_equal(np.asarray(part.image)[~mouth], lfw[7][~mouth])
