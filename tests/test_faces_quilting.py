@@ -358,3 +358,34 @@ def test_restyle_with_bilinear_model(lfw, factor_models):
     mouth[15:21, 6:19] = True
     part, _ = faces.restyle(jax.random.key(11), library, model, lfw[7], mouth, n_best=2)
     np.testing.assert_array_equal(np.asarray(part.image)[~mouth], lfw[7][~mouth])
+
+
+def test_cli_with_a_model_file(lfw, factor_models, tmp_path):
+    from jface import io
+    from jface.cli import main
+
+    folder = tmp_path / "faces"
+    for i in range(40):
+        io.write_png(folder / f"{i:03d}.png", lfw[i])
+    model = tmp_path / "fa.npz"
+    faces.save_model(model, factor_models[0])
+    out = tmp_path / "sample"
+    common = ["--grid", "5", "--translations", "0", "--angles", "--seed", "2"]
+    assert (
+        main(
+            [
+                "quilt",
+                "sample",
+                str(folder),
+                "--model",
+                str(model),
+                "--n",
+                "1",
+                "--out",
+                str(out),
+                *common,
+            ]
+        )
+        == 0
+    )
+    assert io.read_image(out / "face_000.png").shape == (25, 25)

@@ -1,10 +1,10 @@
 """``jface quilt sample|inpaint|edit``: face synthesis and editing by non-stationary quilting.
 
 The training set is a folder (or list) of aligned face images of one size. The global target
-is, for now, a sample of a principal-component model of the training faces (``--global pca``,
-Gaussian loadings scaled by the singular values, no noise, like §3 of Mohammed et al.) or their
-mean (``--global mean``); the factor-analysis and mixture models take its place when they are
-available.
+is a sample of a trained factor analyser or mixture (``--model``, a file of
+``jface.faces.save_model``), or, without one, of a principal-component model of the training
+faces (``--global pca``, Gaussian loadings scaled by the singular values, no noise) or their
+mean (``--global mean``). ``restyle`` needs a bilinear model.
 """
 
 from __future__ import annotations
@@ -48,6 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     _library_args(sample)
     sample.add_argument("--n", type=int, default=16, help="number of faces (default 16)")
     sample.add_argument("--global", dest="global_model", choices=("pca", "mean"), default="pca")
+    sample.add_argument(
+        "--model", help="global model file (factor analyser or mixture, .npz); overrides --global"
+    )
     sample.add_argument("--components", type=int, default=8, help="PCA components (default 8)")
     sample.add_argument("--no-blend", action="store_true", help="skip the Poisson blending")
     sample.set_defaults(run=_sample)
@@ -58,6 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     inpaint.add_argument("--mask", required=True, help="mask image: white where to replace")
     inpaint.add_argument("--n", type=int, default=4, help="number of hypotheses (default 4)")
     inpaint.add_argument("--components", type=int, default=8, help="PCA components (default 8)")
+    inpaint.add_argument("--model", help="global model file (.npz): posterior targets")
     inpaint.set_defaults(run=_inpaint)
 
     edit = actions.add_parser("edit", help="turn a painted edit into realistic texture (§6.2)")
@@ -65,6 +69,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     edit.add_argument("--image", required=True, help="the face before the edit")
     edit.add_argument("--painted", required=True, help="the same face with painted strokes")
     edit.set_defaults(run=_edit, lam=_editing.GUIDE_LAM)
+
+    restyle = actions.add_parser(
+        "restyle", help="change a face's style (expression) with a bilinear model (§6.3)"
+    )
+    _library_args(restyle)
+    restyle.add_argument("--model", required=True, help="bilinear model file (.npz)")
+    restyle.add_argument("--image", required=True, help="the face in the source style")
+    restyle.add_argument("--mask", help="mask image: white where to restyle (default: all)")
+    restyle.add_argument("--source", type=int, default=0, help="style of the face (default 0)")
+    restyle.add_argument("--target", type=int, default=1, help="style wanted (default 1)")
+    restyle.set_defaults(run=_restyle)
 
 
 # --- helpers ------------------------------------------------------------------------------------
@@ -165,6 +180,9 @@ def _sample(args: argparse.Namespace) -> None:
     images, files = _read_faces(args.images, args.grey)
     library = _library(args, images)
     key_target, key_quilt = jax.random.split(jax.random.key(args.seed))
+    if args.model:
+        _sample_from_model(args, images, library, files)
+        return
     if args.global_model == "pca":
         targets = pca_targets(key_target, images, args.components, args.n)
     else:
@@ -177,6 +195,35 @@ def _sample(args: argparse.Namespace) -> None:
         for k, t in tqdm(zip(keys, targets, strict=True), total=args.n, desc="quilt", unit="face")
     ]
     result = jax.tree.map(lambda *xs: jnp.stack(xs), *made)
+    _write_samples(args, images, library, files, result, targets, settings)
+
+
+def _load_model(path: str):
+    if not hasattr(faces, "load_model"):
+        raise ValueError("--model needs the factor models of jface.faces, not in this copy")
+    model, _ = faces.load_model(path)
+    return model
+
+
+def _sample_from_model(args, images, library, files) -> None:
+    model = _load_model(args.model)
+    assignment = None
+    if hasattr(model, "n_components"):
+        assignment = faces.assign_components(model, images)
+    settings = _settings(args)
+    keys = jax.random.split(jax.random.key(args.seed), args.n)
+    made = [
+        faces.synthesize(
+            k, library, model, assignment=assignment, blend=not args.no_blend, **settings
+        )
+        for k in tqdm(keys, desc="quilt", unit="face")
+    ]
+    result = jax.tree.map(lambda *xs: jnp.stack(xs), *[m[0] for m in made])
+    targets = np.stack([np.asarray(m[1]) for m in made])
+    _write_samples(args, images, library, files, result, targets, settings)
+
+
+def _write_samples(args, images, library, files, result, targets, settings) -> None:
     out = Path(args.out)
     meta = io.provenance(seed=args.seed, training=len(files), **settings)
     smaps = np.asarray(faces.source_map(result, library))
@@ -225,14 +272,26 @@ def _inpaint(args: argparse.Namespace) -> None:
     face = _one_face(args.image, images, args.grey, "--image")
     mask = _read_mask(args.mask, face.shape[:2])
     library = _library(args, images)
-    target = pca_fill(face, mask, images, args.components)
-    keys = jax.random.split(jax.random.key(args.seed), args.n)
     settings = _settings(args)
-    made = [
-        faces.inpaint(k, library, face, mask, target, **settings)
-        for k in tqdm(keys, desc="inpaint", unit="hypothesis")
-    ]
-    result = jax.tree.map(lambda *xs: jnp.stack(xs), *made)
+    if args.model:
+        result, targets = faces.inpaint_hypotheses(
+            jax.random.key(args.seed),
+            library,
+            _load_model(args.model),
+            face,
+            mask,
+            args.n,
+            **settings,
+        )
+        target = np.asarray(targets[0])
+    else:
+        target = pca_fill(face, mask, images, args.components)
+        keys = jax.random.split(jax.random.key(args.seed), args.n)
+        made = [
+            faces.inpaint(k, library, face, mask, target, **settings)
+            for k in tqdm(keys, desc="inpaint", unit="hypothesis")
+        ]
+        result = jax.tree.map(lambda *xs: jnp.stack(xs), *made)
     out = Path(args.out)
     meta = io.provenance(seed=args.seed, image=Path(args.image).name, **settings)
     holed = np.where(mask if face.ndim == 2 else mask[..., None], 1.0, face)
@@ -262,6 +321,29 @@ def _edit(args: argparse.Namespace) -> None:
     io.write_png(out / "edited.png", np.asarray(result.image), metadata=meta)
     panel = np.stack([face, painted, np.asarray(result.image)])
     io.write_png(out / "edit.png", montage(panel, columns=3), metadata=meta)
+    print(json.dumps({"out": str(out)}))
+
+
+def _restyle(args: argparse.Namespace) -> None:
+    images, _ = _read_faces(args.images, args.grey)
+    face = _one_face(args.image, images, args.grey, "--image")
+    mask = _read_mask(args.mask, face.shape[:2]) if args.mask else None
+    library = _library(args, images)
+    result, prediction = faces.restyle(
+        jax.random.key(args.seed),
+        library,
+        _load_model(args.model),
+        face,
+        mask,
+        source=args.source,
+        target=args.target,
+        **_settings(args),
+    )
+    out = Path(args.out)
+    meta = io.provenance(seed=args.seed, image=Path(args.image).name, model=Path(args.model).name)
+    io.write_png(out / "restyled.png", np.asarray(result.image), metadata=meta)
+    panel = np.stack([face, np.asarray(prediction), np.asarray(result.image)])
+    io.write_png(out / "restyle.png", montage(panel, columns=3), metadata=meta)
     print(json.dumps({"out": str(out)}))
 
 
