@@ -25,6 +25,7 @@ from jax.typing import ArrayLike
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jface import _checks
+from jface.faces import _poisson
 from jface.faces._editing import inpaint
 from jface.faces._patches import PatchLibrary, training_images
 from jface.faces._quilting import LAM, QuiltResult, check_key, check_library, quilt
@@ -185,12 +186,7 @@ def inpaint_hypotheses(
     n = _checks.integer(n, "n", low=1)
     dtype = library.patches.dtype
     img = _checks.float_array(image, "image", dtype=dtype)
-    hole = jnp.asarray(mask)
-    if hole.dtype != jnp.bool_ or hole.shape != library.geometry.image_shape:
-        raise ValueError(
-            f"mask must be a boolean {library.geometry.image_shape} array, got "
-            f"{_checks.describe(hole)}"
-        )
+    hole = _poisson.region_mask(mask, library.geometry.image_shape, "mask")
     seen = hole if library.grey else jnp.broadcast_to(hole[..., None], img.shape)
     k_model, k_fill = jax.random.split(key)
     if n == 1:
