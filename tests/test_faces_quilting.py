@@ -75,10 +75,11 @@ def sparse_reference(guide: np.ndarray, boundary: np.ndarray, region: np.ndarray
 
 
 def test_dst1_matches_scipy():
-    x = np.random.default_rng(0).standard_normal((3, 11))
-    np.testing.assert_allclose(
-        _poisson.dst1(jnp.asarray(x)), scipy.fft.dst(x, type=1) / 2, atol=1e-12
-    )
+    x = np.random.default_rng(0).standard_normal((5, 11))
+    for axis in (0, 1):
+        np.testing.assert_allclose(
+            _poisson.dst1(jnp.asarray(x), axis), scipy.fft.dst(x, type=1, axis=axis) / 2, atol=1e-12
+        )
 
 
 def test_poisson_matches_sparse_direct_solve():

@@ -38,20 +38,23 @@ CG_MAXITER = 500
 # --- the type-I discrete sine transform -------------------------------------------------------
 
 
-def dst1(x: Float[Array, "... n"]) -> Float[Array, "... n"]:
-    """Unnormalised DST-I along the last axis, ``y_k = Σ_j x_j sin(π (j+1)(k+1) / (n+1))``.
+def dst1(x: Float[Array, "..."], axis: int = -1) -> Float[Array, "..."]:
+    """Unnormalised DST-I along ``axis``, ``y_k = Σ_j x_j sin(π (j+1)(k+1) / (n+1))``.
 
     Written as the imaginary part of a real FFT of the odd extension ``[0, x, 0, -x[::-1]]``
     (length ``2(n + 1)``); applying it twice multiplies by ``(n + 1) / 2``. Same as
-    ``scipy.fft.dst(x, type=1) / 2``.
+    ``scipy.fft.dst(x, type=1, axis=axis) / 2``.
     """
-    zero = jnp.zeros((*x.shape[:-1], 1), x.dtype)
-    odd = jnp.concatenate([zero, x, zero, -x[..., ::-1]], axis=-1)
-    return -jnp.fft.rfft(odd, axis=-1).imag[..., 1 : x.shape[-1] + 1].astype(x.dtype) / 2
+    axis = axis % x.ndim
+    n = x.shape[axis]
+    zero = jnp.zeros_like(jax.lax.slice_in_dim(x, 0, 1, axis=axis))
+    odd = jnp.concatenate([zero, x, zero, -jnp.flip(x, axis)], axis=axis)
+    spectrum = jnp.fft.rfft(odd, axis=axis).imag
+    return -jax.lax.slice_in_dim(spectrum, 1, n + 1, axis=axis).astype(x.dtype) / 2
 
 
 def _dst2(x: Array) -> Array:
-    return jnp.swapaxes(dst1(jnp.swapaxes(dst1(x), -1, -2)), -1, -2)
+    return dst1(dst1(x, -1), -2)
 
 
 def _eigenvalues(n: int, m: int, dtype: Any) -> Array:
