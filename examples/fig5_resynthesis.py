@@ -14,14 +14,7 @@ import jax
 import numpy as np
 from skimage import data
 
-from jface import detail, io, render
-from jface.cli._detail import _smooth
-
-
-def mirror_tile(image: np.ndarray, size: int) -> np.ndarray:
-    row = np.concatenate([image, image[::-1]] * (size // image.shape[0] + 1), axis=0)
-    tile = np.concatenate([row, row[:, ::-1]] * (size // image.shape[1] + 1), axis=1)
-    return np.ascontiguousarray(tile[:size, :size])
+from jface import detail, io, render, tiles
 
 
 def main() -> None:
@@ -32,9 +25,9 @@ def main() -> None:
     args = parser.parse_args()
     out = Path(args.out)
 
-    original = mirror_tile(data.gravel().astype(np.float32) / 255.0, args.size)
+    original = tiles.mirror_tile(data.gravel().astype(np.float32) / 255.0, args.size)
     stats = detail.analyze(original)
-    smooth = _smooth(original, n_bands=3)
+    smooth = np.asarray(detail.remove_detail(original, n_bands=3))
     result = np.asarray(detail.synthesize(jax.random.key(args.seed), smooth, stats))
     meta = io.provenance(seed=args.seed, experiment="Golovinskiy 2006 Fig. 5", size=args.size)
     for name, image in (("original", original), ("smoothed", smooth), ("synthesized", result)):

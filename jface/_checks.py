@@ -111,3 +111,17 @@ def choice(x: Any, name: str, options: Iterable[str]) -> str:
     if x not in options:
         raise ValueError(f"{name} must be one of {', '.join(map(repr, options))}; got {x!r}")
     return x
+
+
+def key(x: Any, name: str = "key") -> jax.Array:
+    """Return ``x`` if it is a JAX random key (typed, or legacy uint32[2]), else raise TypeError.
+
+    A plain integer seed is refused with a hint, so a caller never gets JAX's bare message.
+    """
+    if isinstance(x, jax.Array) and (
+        jnp.issubdtype(x.dtype, jax.dtypes.prng_key) or (x.dtype == jnp.uint32 and x.shape == (2,))
+    ):
+        return x
+    raise TypeError(
+        f"{name} must be a JAX random key such as jax.random.key(seed), got {describe(x)}"
+    )

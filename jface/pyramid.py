@@ -54,6 +54,15 @@ class Pyramid(eqx.Module):
     image_shape: tuple[int, int] = eqx.field(static=True)
     pad: tuple[int, int, int, int] = eqx.field(static=True, default=(0, 0, 0, 0))
 
+    def replace(self, **coefficients: Any) -> Pyramid:
+        """A copy with some of ``highpass``, ``bands``, ``lowpass`` replaced (same layout)."""
+        fields = {"highpass": self.highpass, "bands": self.bands, "lowpass": self.lowpass}
+        unknown = set(coefficients) - set(fields)
+        if unknown:
+            raise TypeError(f"only highpass, bands and lowpass can be replaced, got {unknown}")
+        fields |= coefficients
+        return Pyramid(**fields, image_shape=self.image_shape, pad=self.pad)
+
     @property
     def n_scales(self) -> int:
         return len(self.bands)
@@ -115,7 +124,7 @@ def build(
             small for ``n_scales`` (it needs ``min(H, W) >= 2**(n_scales + 2)``).
     """
     image = _checks.float_array(image, "image", min_ndim=2)
-    n_scales = _checks.integer(n_scales, "n_scales", low=0)
+    n_scales = _checks.integer(n_scales, "n_scales", low=1)
     n_orientations = _checks.integer(n_orientations, "n_orientations", low=1, high=16)
     _checks.choice(boundary, "boundary", ("circular", "reflect"))
     shape = image.shape[-2:]
@@ -191,6 +200,11 @@ def _raised_cosine(log_radius: np.ndarray, position: float) -> tuple[np.ndarray,
 
 @functools.lru_cache(maxsize=32)
 def make_filters(shape: tuple[int, int], n_scales: int, n_orientations: int, dtype: str) -> Filters:
+    """The frequency masks for images of ``shape`` (computed once per arguments, cached).
+
+    For algorithms that iterate in the frequency domain (see :func:`analyse_spectrum` and
+    :func:`synthesise_spectrum`); :func:`build` and :func:`collapse` call it themselves.
+    """
     h, w = shape
     order = n_orientations - 1
     const = (2 ** (2 * order)) * math.factorial(order) ** 2
@@ -255,7 +269,8 @@ def _analyse(filters: Filters, image: Array) -> tuple[Array, tuple[Array, ...], 
 
 
 def analyse_spectrum(filters: Filters, spectrum: Array) -> tuple[Array, tuple[Array, ...], Array]:
-    """Pyramid coefficients from the rfft2 of a (padded) image."""
+    """Pyramid coefficients ``(highpass, bands, lowpass)`` from the rfft2 of a (padded) image,
+    so an iterative algorithm can stay in the frequency domain between iterations."""
     sizes = filters.sizes
     highpass = jnp.fft.irfft2(_times(spectrum, filters.hi0), s=sizes[0])
     low = _times(spectrum, filters.lo0)
@@ -292,6 +307,7 @@ def _synthesise(filters: Filters, highpass: Array, bands: tuple[Array, ...], low
 
 
 def padding(shape: tuple[int, int], n_scales: int, boundary: str) -> tuple[int, int, int, int]:
+    """Rows/columns ``(top, bottom, left, right)`` that :func:`build` adds for ``boundary``."""
     step = 2**n_scales
     margin = 2 ** (n_scales + 2) if boundary == "reflect" else 0
     h, w = shape
@@ -301,6 +317,7 @@ def padding(shape: tuple[int, int], n_scales: int, boundary: str) -> tuple[int, 
 
 
 def pad_image(image: Array, pad: tuple[int, int, int, int]) -> Array:
+    """Mirror-pad the last two axes by ``pad`` (see :func:`padding`)."""
     if not any(pad):
         return image
     top, bottom, left, right = pad

@@ -16,7 +16,7 @@ from jax.typing import ArrayLike
 
 from jface import _checks
 
-# A compact perceptually ordered colour map (viridis at 9 stops), interpolated linearly.
+# A compact perceptually ordered colour map (viridis at 11 stops), interpolated linearly.
 _VIRIDIS = np.array(
     [
         [0.267, 0.005, 0.329],
@@ -48,7 +48,6 @@ def shade(
     height: ArrayLike,
     *,
     azimuth: float = 315.0,
-    elevation: float = 45.0,
     n_octaves: int | None = None,
     contrast: float = 0.35,
 ) -> np.ndarray:
@@ -56,8 +55,8 @@ def shade(
 
     Args:
         height: ``(H, W)`` map, any units.
-        azimuth: light direction in the image plane, degrees (315 = from the top left).
-        elevation: light elevation above the surface, degrees.
+        azimuth: light direction in the image plane, degrees (315 = from the top left); each
+            band's slopes are normalised, so only the direction of the light matters.
         n_octaves: number of octave bands lit separately (default: up to 1/8 of the map).
         contrast: gain of each band's shading; each band's slopes are normalised by their own
             robust scale, so fine pores and broad wrinkles both show.
@@ -69,10 +68,7 @@ def shade(
     if n_octaves is None:
         n_octaves = max(1, int(math.log2(max(min(height.shape) // 8, 2))))
     n_octaves = _checks.integer(n_octaves, "n_octaves", low=1)
-    light = (
-        math.cos(math.radians(azimuth)) * math.cos(math.radians(elevation)),
-        -math.sin(math.radians(azimuth)) * math.cos(math.radians(elevation)),
-    )
+    light = (math.cos(math.radians(azimuth)), -math.sin(math.radians(azimuth)))
     shading = jnp.zeros_like(height)
     finer = height
     for octave in range(n_octaves):

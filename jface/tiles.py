@@ -21,13 +21,32 @@ from jaxtyping import Array, Float
 # --- grids -----------------------------------------------------------------------------------
 
 
-def check_divides(grid: int, shape: tuple[int, ...], what: str = "band") -> None:
-    """Raise ValueError unless ``grid`` divides both sizes of ``shape``."""
-    if shape[-2] % grid or shape[-1] % grid:
+def check_tiles(grid: int, shape: tuple[int, ...], what: str = "band") -> None:
+    """Raise ValueError unless ``grid`` splits ``shape`` into tiles of at least 2×2 pixels.
+
+    Args:
+        grid: tiles per side.
+        shape: ``(..., h, w)`` of the band.
+        what: how to name the band in the message.
+    """
+    if isinstance(grid, bool) or not isinstance(grid, int) or grid < 1:
+        raise ValueError(f"grid must be a positive integer, got {grid!r}")
+    h, w = shape[-2:]
+    if h % grid or w % grid or h // grid < 2 or w // grid < 2:
         raise ValueError(
-            f"grid={grid} must divide the {what} size, got {shape[-2]}×{shape[-1]}; use an image "
-            f"whose sides are multiples of grid·2**(n_scales-1), or another grid"
+            f"grid={grid} must split the {what} ({h}×{w}) into whole tiles of at least 2×2 "
+            "pixels; use sides that are multiples of 2·grid·2**(n_scales-1), or another grid"
         )
+
+
+def mirror_tile(image: np.ndarray, size: int) -> np.ndarray:
+    """Mirror-tile a texture to ``(size, size)``, continuous across the seams (a way to bring a
+    small real texture to the paper's 1024² without a visible seam)."""
+    image = np.asarray(image)
+    reps = -(-size // min(image.shape)) + 1
+    row = np.concatenate([image, image[::-1]] * reps, axis=0)
+    tile = np.concatenate([row, row[:, ::-1]] * reps, axis=1)
+    return np.ascontiguousarray(tile[:size, :size])
 
 
 @functools.lru_cache(maxsize=64)
@@ -70,9 +89,31 @@ def tile_view(band: Float[Array, "*batch h w"], grid: int) -> Float[Array, "*bat
     return jnp.swapaxes(tiles, -3, -2)
 
 
+def tile_moments(
+    band: Float[Array, "*batch h w"], grid: int
+) -> tuple[Float[Array, "*batch g g"], Float[Array, "*batch g g"]]:
+    """Mean and standard deviation (ddof=0) of each non-overlapping tile, in one pass.
+
+    Args:
+        band: ``(..., h, w)``; ``grid`` must divide h and w (see :func:`check_tiles`).
+        grid: tiles per side.
+
+    Returns:
+        ``(mean, std)``, each ``(..., grid, grid)``.
+    """
+    check_tiles(grid, band.shape)
+    h, w = band.shape[-2:]
+    # Reduce over a plain reshape (axes -3 and -1): no transpose copy of the band.
+    blocks = band.reshape(*band.shape[:-2], grid, h // grid, grid, w // grid)
+    mean = blocks.mean(axis=(-3, -1))
+    second = (blocks * blocks).mean(axis=(-3, -1))
+    return mean, jnp.sqrt(jnp.maximum(second - mean * mean, 0.0))
+
+
 def tile_std(band: Float[Array, "*batch h w"], grid: int) -> Float[Array, "*batch g g"]:
-    """Standard deviation (mean subtracted, ddof=0) of each non-overlapping tile."""
-    return jnp.std(tile_view(band, grid), axis=(-2, -1))
+    """Standard deviation (mean subtracted, ddof=0) of each non-overlapping tile
+    (Golovinskiy et al. §2.3: the "reduced" statistics)."""
+    return tile_moments(band, grid)[1]
 
 
 def tile_histograms(
@@ -108,11 +149,11 @@ def grown_moments(
     return mean, jnp.sqrt(jnp.maximum(second - mean * mean, 0.0))
 
 
-def blend(values: Float[Array, "g g"], shape: tuple[int, int]) -> Float[Array, "h w"]:
+def blend(values: Float[Array, "*k g g"], shape: tuple[int, int]) -> Float[Array, "*k h w"]:
     """Spread per-tile values over a band of ``shape`` with bilinear weights between tile
-    centres (the blending of §2.4)."""
-    rows = blend_weights(shape[0], values.shape[0], values.dtype)
-    cols = blend_weights(shape[1], values.shape[1], values.dtype)
+    centres (the blending of §2.4); leading axes blend several quantities at once."""
+    rows = blend_weights(shape[0], values.shape[-2], values.dtype)
+    cols = blend_weights(shape[1], values.shape[-1], values.dtype)
     return rows @ values @ cols.T
 
 
@@ -149,21 +190,24 @@ def match_std(
             them: its own iterations do the same work).
         eps: floor on a standard deviation before dividing by it.
     """
+    if rule not in ("exact", "paper"):
+        raise ValueError(f"rule must be 'exact' or 'paper', got {rule!r}")
     grid = target.shape[0]
     if rule == "paper":
         mean, std = grown_moments(band, grid)
-        gain = target / jnp.maximum(std, eps)
-        return band * blend(gain, band.shape) + blend(mean * (1.0 - gain), band.shape)
-    mean = jnp.mean(tile_view(band, grid), axis=(-2, -1))
+    else:
+        mean, std = tile_moments(band, grid)
 
     def scaled(gain):
-        return band * blend(gain, band.shape) + blend(mean * (1.0 - gain), band.shape)
+        gain_field, offset_field = blend(jnp.stack([gain, mean * (1.0 - gain)]), band.shape)
+        return band * gain_field + offset_field
 
     def refine(gain, _):
         return gain * target / jnp.maximum(tile_std(scaled(gain), grid), eps), None
 
-    gain = target / jnp.maximum(tile_std(band, grid), eps)
-    gain, _ = jax.lax.scan(refine, gain, length=n_refine)
+    gain = target / jnp.maximum(std, eps)
+    if rule == "exact" and n_refine:
+        gain, _ = jax.lax.scan(refine, gain, length=n_refine)
     return scaled(gain)
 
 

@@ -19,14 +19,6 @@ def key():
     return jax.random.key(0)
 
 
-def mirror_tile(image: np.ndarray, size: int) -> np.ndarray:
-    """Mirror-tile a texture to (size, size) so it stays continuous across the seams."""
-    reps = -(-size // image.shape[0]) + 1
-    row = np.concatenate([image, image[::-1]] * reps, axis=0)
-    tile = np.concatenate([row, row[:, ::-1]] * reps, axis=1)
-    return np.ascontiguousarray(tile[:size, :size])
-
-
 @pytest.fixture(scope="session")
 def gravel() -> np.ndarray:
     """scikit-image's real gravel texture (CC0), 512×512, float64 in [0, 1]."""

@@ -99,5 +99,5 @@ def test_bad_input(unchecked, maps, tmp_path):
     path = io.write_exr(tmp_path / "a.exr", maps[0])
     with pytest.raises(ValueError, match="one record per map"):
         detail.build_database([path], tmp_path / "x.npz", records=[], grid=8, n_scales=3)
-    with pytest.raises(ValueError, match="grid=16 must divide"):
+    with pytest.raises(ValueError, match="grid=16 must split"):
         detail.analyze_batch(jnp.zeros((2, 100, 100)))

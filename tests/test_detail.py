@@ -1,18 +1,17 @@
 """Tile statistics and spatially varying synthesis (Golovinskiy et al. 2006, §2.3–2.4)."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import mirror_tile
 
 from jface import detail, pyramid, tiles
-from jface.cli._detail import _smooth
 
 
 @pytest.fixture(scope="module")
 def texture(gravel):
-    return jnp.asarray(mirror_tile(gravel, 256), jnp.float32)
+    return jnp.asarray(tiles.mirror_tile(gravel, 256), jnp.float32)
 
 
 @pytest.fixture(scope="module")
@@ -91,13 +90,12 @@ def test_fig5_resynthesis_converges_on_real_data(gravel):
     """
     texture = jnp.asarray(gravel, jnp.float32)
     stats = detail.analyze(texture)
-    smooth = _smooth(np.asarray(texture), n_bands=3)
+    smooth = detail.remove_detail(texture, n_bands=3)
     before = np.asarray(detail.stats_error(detail.analyze(smooth), stats))
     result = detail.synthesize(jax.random.key(0), smooth, stats)
     after = np.asarray(detail.stats_error(detail.analyze(result), stats))
     assert np.median(before) > 0.3
     assert np.median(after) <= 0.02 and np.percentile(after, 95) <= 0.08
-    # The low-pass residual (the base mesh's share) is kept.
     # The low-pass residual (the base mesh's share) is kept; re-analysis sees only the overlap
     # of the coarsest band's transition with it.
     kept, original = pyramid.build(result).lowpass, pyramid.build(jnp.asarray(smooth)).lowpass
@@ -126,7 +124,7 @@ def test_analyze_vmap_equals_loop(texture):
 def test_histogram_synthesis_moves_tiles_towards_targets(texture):
     texture = texture[:64, :64]
     full = detail.analyze(texture, bins=16, grid=4, n_scales=2)
-    smooth = _smooth(np.asarray(texture), n_bands=2, n_scales=2)
+    smooth = detail.remove_detail(texture, n_bands=2, n_scales=2)
     result = detail.synthesize(jax.random.key(1), smooth, full, n_iter=2)
     before = detail.stats_error(detail.analyze_like(smooth, full), full)
     after = detail.stats_error(detail.analyze_like(result, full), full)
@@ -134,7 +132,7 @@ def test_histogram_synthesis_moves_tiles_towards_targets(texture):
 
 
 def test_reflect_boundary_synthesis(texture, stats):
-    smooth = _smooth(np.asarray(texture), n_bands=3)
+    smooth = detail.remove_detail(texture, n_bands=3)
     result = detail.synthesize(jax.random.key(2), smooth, stats, boundary="reflect", n_iter=4)
     error = detail.stats_error(detail.analyze(result, boundary="reflect"), stats)
     assert result.shape == texture.shape and float(jnp.median(error)) < 0.1
@@ -160,7 +158,7 @@ def test_save_load_and_population(tmp_path, texture, stats):
 
 
 def test_bad_input(unchecked, texture, stats, tmp_path):
-    with pytest.raises(ValueError, match="grid=16 must divide every band"):
+    with pytest.raises(ValueError, match="grid=16 must split"):
         detail.analyze(jnp.zeros((200, 200)))
     with pytest.raises(ValueError, match="image must have 2 axes"):
         detail.analyze(jnp.zeros((2, 256, 256)))
@@ -179,5 +177,68 @@ def test_bad_input(unchecked, texture, stats, tmp_path):
     with pytest.raises(ValueError, match="field 'sex' is missing"):
         detail.Population.from_faces([stats], [{"id": "a"}]).select(sex="f")
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
-    with pytest.raises(ValueError, match="corrupt or truncated"):
+    with pytest.raises(ValueError, match="not a readable jface"):
         detail.load_stats(tmp_path / "bad.npz")
+
+
+def test_fixed_point_and_noise_scale(texture, stats, key):
+    """The source is a fixed point of its own statistics; the noise has the stated amplitude."""
+    same = detail.synthesize(key, texture, stats, noise=0.0)
+    assert float(jnp.max(jnp.abs(same - texture))) < 1e-4
+    noisy = detail.synthesize(key, texture, stats, n_iter=0, noise=0.5)
+    np.testing.assert_allclose(jnp.std(noisy - texture), 0.5 * stats.detail_rms(), rtol=0.02)
+
+
+def test_jit_equals_eager_and_vmap_over_targets(texture, stats, key):
+    eager = detail.analyze(texture)
+    jitted = jax.jit(detail.analyze)(texture)
+    np.testing.assert_allclose(jitted.std, eager.std, rtol=1e-6)
+    run = jax.jit(lambda k, s, t: detail.synthesize(k, s, t, n_iter=2))
+    np.testing.assert_allclose(
+        run(key, texture, stats), detail.synthesize(key, texture, stats, n_iter=2), atol=1e-5
+    )
+    targets = detail.stack_stats([stats, detail.analyze(texture * 2.0)])
+    mapped = jax.vmap(lambda t: detail.synthesize(key, texture, t, n_iter=2))(targets)
+    second = jax.tree.map(lambda x: x[1], targets)
+    expected = detail.synthesize(key, texture, second, n_iter=2)
+    np.testing.assert_allclose(mapped[1], expected, atol=1e-5)
+
+
+def with_std(stats, std):
+    return eqx.tree_at(lambda s: s.std, stats, std)
+
+
+def test_histogram_matching_reaches_spatially_varying_targets(texture):
+    """A band matched to Laplacian tiles, three times wider on the right half: away from the
+    seam, each half takes the quantiles of its own target."""
+    band = pyramid.build(texture[:128, :128]).bands[0][0]
+    rng = np.random.default_rng(0)
+    width = jnp.where(jnp.arange(128) < 64, 1.0, 3.0) * float(jnp.std(band))
+    target = jnp.asarray(rng.laplace(size=band.shape), band.dtype) * width.astype(band.dtype)
+    probabilities, ranges = tiles.tile_histograms(target, 8, 32)
+    matched = tiles.match_histogram(band, probabilities, ranges)
+    levels = jnp.linspace(0.05, 0.95, 10)
+    for columns in (slice(0, 48), slice(80, 128)):
+        want = jnp.quantile(target[:, columns], levels)
+        got = jnp.quantile(matched[:, columns], levels)
+        before = jnp.quantile(band[:, columns], levels)
+        assert float(jnp.max(jnp.abs(got - want))) < 0.1 * float(jnp.max(jnp.abs(want)))
+        assert float(jnp.max(jnp.abs(before - want))) > 0.2 * float(jnp.max(jnp.abs(want)))
+
+
+def test_bad_targets(unchecked, texture, stats, key):
+    with pytest.raises(ValueError, match=r"target\.std must be non-negative"):
+        detail.synthesize(key, texture, with_std(stats, -stats.std))
+    with pytest.raises(ValueError, match=r"target\.std must be finite"):
+        detail.synthesize(key, texture, with_std(stats, stats.std.at[0, 0, 0].set(jnp.nan)))
+    with pytest.raises(ValueError, match=r"target.std must be \(..., 17, grid, grid\)"):
+        detail.synthesize(key, texture, with_std(stats, stats.std[:5]))
+    with pytest.raises(TypeError, match="key must be a JAX random key"):
+        detail.synthesize(0, texture, stats)
+    with pytest.raises(ValueError, match="at least 2×2 pixels"):
+        detail.analyze(jnp.zeros((128, 128)))
+    with pytest.raises(ValueError, match="n_scales must be in"):
+        pyramid.build(jnp.zeros((64, 64)), n_scales=0)
+    odd = detail.analyze(jnp.zeros((256, 320)), bins=8, grid=16, n_scales=3)
+    with pytest.raises(ValueError, match="even number of pixels per tile side"):
+        detail.synthesize(key, jnp.zeros((256, 320)), odd)

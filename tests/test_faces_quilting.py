@@ -225,7 +225,7 @@ def test_quilt_bad_input(library, lfw, pca_target, unchecked):
         faces.quilt(key, library, lfw[0, :24])
     with pytest.raises(ValueError, match="n_best=10000 is more than"):
         faces.quilt(key, library, pca_target, n_best=10000)
-    with pytest.raises(TypeError, match="key must be a typed JAX key"):
+    with pytest.raises(TypeError, match="key must be a JAX random key"):
         faces.quilt(0, library, pca_target)
     with pytest.raises(ValueError, match="lam must be in"):
         faces.quilt(key, library, pca_target, lam=-1.0)

@@ -10,7 +10,7 @@ from jface import io, render
 from jface.cli import main
 
 
-def test_exr_round_trip_with_metadata(tmp_path, key):
+def test_exr_round_trip_with_metadata(tmp_path):
     rng = np.random.default_rng(0)
     data = rng.standard_normal((33, 47)).astype(np.float32)
     path = io.write_exr(tmp_path / "m.exr", data, metadata=io.provenance(seed=7, noise=0.1))
@@ -123,6 +123,30 @@ def test_cli_analyze_synthesize_render(tmp_path, gravel, capsys):
     assert "refusing to overwrite the input" in capsys.readouterr().err
     assert (tmp_path / "face0.exr").read_bytes() == before
     assert main(["analyze", str(tmp_path / "nope.exr"), "--out", str(stats_dir)]) == 2
+    # Two inputs that would share an output name are refused before anything is written.
+    other = tmp_path / "sub"
+    other.mkdir()
+    twin = io.write_exr(other / "face0.exr", gravel[:256, :256].astype(np.float32))
+    assert main(["analyze", maps[0], str(twin), "--out", str(tmp_path / "s2")]) == 2
+    assert "share the output name" in capsys.readouterr().err
+    # The shaded PNG beside the output must not replace an input either.
+    png_input = tmp_path / "start.png"
+    io.write_png(png_input, gravel[:256, :256])
+    before = png_input.read_bytes()
+    stats_file = str(stats_dir / "face1.stats.npz")
+    code = main(
+        [
+            "synthesize",
+            str(png_input),
+            "--stats",
+            stats_file,
+            "--out",
+            str(tmp_path / "start.exr"),
+            "--n-iter",
+            "1",
+        ]
+    )
+    assert code == 2 and png_input.read_bytes() == before
 
 
 def test_cli_db_build_and_compare(tmp_path, gravel, capsys):

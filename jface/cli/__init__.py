@@ -17,7 +17,7 @@ from pathlib import Path
 from jface import __version__
 
 #: Modules contributing sub-commands, in the order their demo steps run.
-COMMAND_MODULES = ("jface.cli._detail", "jface.cli._quilt")
+COMMAND_MODULES = ("jface.cli._detail", "jface.cli._mesh", "jface.cli._quilt")
 
 
 def _modules():

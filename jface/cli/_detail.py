@@ -11,7 +11,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jface import detail, io, pyramid, render
+from jface import detail, io, render
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,6 +39,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     synth.add_argument("--noise", type=float, default=detail._synthesis.NOISE)
     synth.add_argument("--rule", choices=("exact", "paper"), default="exact")
     synth.add_argument("--method", choices=("std", "histogram"), default=None)
+    synth.add_argument(
+        "--boundary",
+        choices=("circular", "reflect"),
+        default=None,
+        help="pyramid boundary (default: the one the statistics were analysed with)",
+    )
     synth.set_defaults(run=_synthesize)
 
     db = sub.add_parser("db", help="statistics databases of many faces")
@@ -77,10 +83,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _analyze(args: argparse.Namespace) -> None:
     out = Path(args.out)
+    stems = [Path(name).stem for name in args.files]
+    clashes = sorted({stem for stem in stems if stems.count(stem) > 1})
+    if clashes:
+        raise ValueError(f"several inputs share the output name(s) {clashes}; rename them")
     done = skipped = 0
     for name in tqdm(args.files, desc="analyze", unit="map", disable=len(args.files) < 2):
         target = out / (Path(name).stem + ".stats.npz")
         if target.exists() and not args.overwrite:
+            _, meta = detail.load_stats(target)
+            if meta.get("source") != Path(name).name:
+                raise ValueError(
+                    f"{target} holds statistics of {meta.get('source')!r}, not of {name}; "
+                    "use another --out or --overwrite"
+                )
             skipped += 1  # finished by an earlier run: a batch that died keeps what it did
             continue
         stats = detail.analyze(
@@ -93,14 +109,17 @@ def _analyze(args: argparse.Namespace) -> None:
         )
         detail.save_stats(target, stats, source=Path(name).name, boundary=args.boundary)
         mosaic = render.stats_mosaic(stats.std, stats.n_orientations)
-        io.write_png(target.with_suffix(".png"), mosaic, metadata={"source": Path(name).name})
+        meta = io.provenance(source=Path(name).name, grid=args.grid, scales=args.scales)
+        io.write_png(target.with_suffix(".png"), mosaic, metadata=meta)
         done += 1
     print(f"analyzed {done} map(s), kept {skipped} already done, in {out}/")
 
 
 def _synthesize(args: argparse.Namespace) -> None:
     start = io.read_map(args.start)
-    target, _ = detail.load_stats(args.stats)
+    target, stats_meta = detail.load_stats(args.stats)
+    boundary = args.boundary or stats_meta.get("boundary", "circular")
+    method = args.method or ("histogram" if target.full else "std")
     result = detail.synthesize(
         jax.random.key(args.seed),
         start,
@@ -108,9 +127,11 @@ def _synthesize(args: argparse.Namespace) -> None:
         n_iter=args.n_iter,
         noise=args.noise,
         rule=args.rule,
-        method=args.method,
+        method=method,
+        boundary=boundary,
     )
-    error = np.asarray(detail.stats_error(detail.analyze_like(result, target), target))
+    analysed = detail.analyze_like(result, target, boundary=boundary)
+    error = np.asarray(detail.stats_error(analysed, target))
     meta = io.provenance(
         seed=args.seed,
         start=Path(args.start).name,
@@ -118,10 +139,12 @@ def _synthesize(args: argparse.Namespace) -> None:
         n_iter=args.n_iter,
         noise=args.noise,
         rule=args.rule,
-        method=args.method,
+        method=method,
+        boundary=boundary,
     )
-    out = io.write_exr(args.out, np.asarray(result), metadata=meta, protect=(args.start,))
-    io.write_png(out.with_suffix(".png"), render.shade(result), metadata=meta)
+    inputs = (args.start, args.stats)
+    out = io.write_exr(args.out, np.asarray(result), metadata=meta, protect=inputs)
+    io.write_png(out.with_suffix(".png"), render.shade(result), metadata=meta, protect=inputs)
     print(json.dumps({"out": str(out), "median_tile_std_error": float(np.median(error))}))
 
 
@@ -161,7 +184,10 @@ def _parse_group(spec: str) -> tuple[str, dict]:
             low, high = value.split("..")
             criteria[field] = (float(low), float(high))
         else:
-            criteria[field] = value
+            try:  # numbers compare as numbers ("age=30"), anything else as text ("sex=f")
+                criteria[field] = json.loads(value)
+            except json.JSONDecodeError:
+                criteria[field] = value
     return name, criteria
 
 
@@ -194,18 +220,8 @@ def _db_compare(args: argparse.Namespace) -> None:
 
 
 def _render(args: argparse.Namespace) -> None:
-    io.write_png(args.out, render.shade(io.read_map(args.map)), protect=(args.map,))
-
-
-def _smooth(image: np.ndarray, n_bands: int, n_scales: int = 4) -> np.ndarray:
-    """Remove the high-pass and the ``n_bands - 1`` finest scales (a smooth start, as Fig. 5)."""
-    pyr = pyramid.build(image, n_scales)
-    bands = tuple(b * 0 if s < n_bands - 1 else b for s, b in enumerate(pyr.bands))
-    return np.asarray(
-        pyramid.collapse(
-            pyramid.Pyramid(pyr.highpass * 0, bands, pyr.lowpass, pyr.image_shape, pyr.pad)
-        )
-    )
+    meta = io.provenance(source=Path(args.map).name)
+    io.write_png(args.out, render.shade(io.read_map(args.map)), metadata=meta, protect=(args.map,))
 
 
 def demo(out: Path, seed: int) -> None:
@@ -215,7 +231,7 @@ def demo(out: Path, seed: int) -> None:
     with importlib.resources.as_file(source) as path:
         original = io.read_map(path)
     stats = detail.analyze(original, grid=16)
-    smooth = _smooth(original, n_bands=3)
+    smooth = np.asarray(detail.remove_detail(original, n_bands=3))
     result = detail.synthesize(jax.random.key(seed), smooth, stats)
     errors = {
         name: float(np.median(np.asarray(detail.stats_error(detail.analyze_like(m, stats), stats))))

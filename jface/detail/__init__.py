@@ -19,6 +19,7 @@ from jface.detail._applications import (
     band_correlation,
     compare_methods,
     interpolate,
+    remove_detail,
     sharpen,
     transfer_detail,
 )
@@ -56,6 +57,7 @@ __all__ = [
     "load_stats",
     "log_features",
     "mean_stats",
+    "remove_detail",
     "save_stats",
     "sharpen",
     "stack_stats",

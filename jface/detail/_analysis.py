@@ -133,6 +133,7 @@ def cross_validate(
         folds: number of folds (2 ≤ folds ≤ n).
         ridge: regularisation strength, relative to the mean feature variance × n.
     """
+    key = _checks.key(key)
     features = _checks.float_array(features, "features", ndim=2)
     targets = jnp.asarray(targets)
     n = features.shape[0]

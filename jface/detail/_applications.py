@@ -10,20 +10,14 @@ from jax.typing import ArrayLike
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from jface import _checks, pyramid
-from jface.detail._stats import DetailStats, analyze_like, mean_stats, stats_error
+from jface.detail._stats import (
+    DetailStats,
+    analyze_like,
+    check_weights,
+    mean_stats,
+    stats_error,
+)
 from jface.detail._synthesis import synthesize
-
-
-def check_weights(weights: ArrayLike, n: int, dtype) -> Float[Array, " n"]:
-    """Validate interpolation weights: ``n`` finite, non-negative, summing to one."""
-    weights = _checks.float_array(weights, "weights", ndim=1).astype(dtype)
-    if weights.shape[0] != n:
-        raise ValueError(f"weights must have {n} entries (one per face), got {weights.shape[0]}")
-    if bool(jnp.any(weights < 0)):
-        raise ValueError(f"weights must be non-negative, got {weights.tolist()}")
-    if abs(float(weights.sum()) - 1.0) > 1e-4:
-        raise ValueError(f"weights must sum to 1, got {float(weights.sum()):.6g}")
-    return weights
 
 
 class Interpolation(NamedTuple):
@@ -47,6 +41,7 @@ def interpolate(
         weights: ``(n,)`` non-negative weights summing to one.
         **options: passed to :func:`jface.detail.synthesize` (``n_iter``, ``noise``, ...).
     """
+    key = _checks.key(key)
     images = _checks.float_array(images, "images", ndim=3)
     if stats.std.ndim != 4 or stats.std.shape[0] != images.shape[0]:
         raise ValueError(
@@ -65,14 +60,9 @@ def sharpen(image: ArrayLike, target: DetailStats) -> Float[Array, "H W"]:
     pyr = pyramid.build(image, target.n_scales, target.n_orientations)
     own = analyze_like(image, target).detail_rms()
     gain = target.detail_rms().astype(image.dtype) / jnp.maximum(own, 1e-12)
-    boosted = pyramid.Pyramid(
-        pyr.highpass * gain,
-        tuple(b * gain for b in pyr.bands),
-        pyr.lowpass,
-        pyr.image_shape,
-        pyr.pad,
+    return pyramid.collapse(
+        pyr.replace(highpass=pyr.highpass * gain, bands=tuple(b * gain for b in pyr.bands))
     )
-    return pyramid.collapse(boosted)
 
 
 def transfer_detail(image: ArrayLike, donor: ArrayLike, n_scales: int = 4) -> Float[Array, "H W"]:
@@ -84,9 +74,24 @@ def transfer_detail(image: ArrayLike, donor: ArrayLike, n_scales: int = 4) -> Fl
         raise ValueError(f"donor must have the image's shape {image.shape}, got {donor.shape}")
     own = pyramid.build(image, n_scales)
     theirs = pyramid.build(donor, n_scales)
-    return pyramid.collapse(
-        pyramid.Pyramid(theirs.highpass, theirs.bands, own.lowpass, own.image_shape, own.pad)
-    )
+    return pyramid.collapse(own.replace(highpass=theirs.highpass, bands=theirs.bands))
+
+
+def remove_detail(image: ArrayLike, n_bands: int, n_scales: int = 4) -> Float[Array, "H W"]:
+    """Smooth a map by dropping its high-pass and its ``n_bands - 1`` finest scales (the
+    smoothed start of the paper's Fig. 5 experiment; also a model of a low-resolution scan).
+
+    Args:
+        image: ``(H, W)`` map.
+        n_bands: detail bands to drop: 1 = the high-pass only, 2 = also scale 0, ...
+        n_scales: pyramid scales.
+    """
+    image = _checks.float_array(image, "image", ndim=2)
+    n_bands = _checks.integer(n_bands, "n_bands", low=0, high=n_scales + 1)
+    pyr = pyramid.build(image, n_scales)
+    keep = 0.0 if n_bands >= 1 else 1.0
+    bands = tuple(b * 0.0 if s < n_bands - 1 else b for s, b in enumerate(pyr.bands))
+    return pyramid.collapse(pyr.replace(highpass=pyr.highpass * keep, bands=bands))
 
 
 def band_correlation(a: ArrayLike, b: ArrayLike, scale: int, n_scales: int = 4) -> float:
@@ -110,6 +115,7 @@ def compare_methods(
         method → {"stats_error", "keeps_coarse", "keeps_mid"} for "statistical", "sharpen" and
         "transfer".
     """
+    key = _checks.key(key)
     source = _checks.float_array(source, "source", ndim=2)
     results = {
         "statistical": synthesize(key, source, target, **options),

@@ -21,9 +21,9 @@ from jface.detail._population import Population
 from jface.detail._stats import (
     DetailStats,
     _analyze,
-    check_layout,
     stats_from_arrays,
     stats_to_arrays,
+    validate_layout,
 )
 
 
@@ -46,9 +46,9 @@ def analyze_batch(
     images = _checks.float_array(images, "images", ndim=3)
     devices = list(devices or jax.devices())
     n = images.shape[0]
-    check_layout(grid, images.shape[1:], n_scales)
-    if n_scales > pyramid.max_scales(images.shape[1:]):
-        pyramid.build(images[0], n_scales, n_orientations)  # raises the pyramid's own message
+    grid, n_scales, n_orientations, bins = validate_layout(
+        images.shape[1:], grid, n_scales, n_orientations, bins, boundary
+    )
     padded_n = -(-n // len(devices)) * len(devices)
     if padded_n != n:  # equal shares: pad with copies of the first map, drop their results
         images = jnp.concatenate(

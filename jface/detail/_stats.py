@@ -78,17 +78,80 @@ class DetailStats(eqx.Module):
 
 
 def check_layout(grid: int, shape: tuple[int, int], n_scales: int) -> None:
-    """Raise ValueError unless ``grid`` tiles every detail band of an image of ``shape``."""
+    """Raise ValueError unless ``grid`` tiles every detail band of an image of ``shape`` into
+    whole tiles of at least 2×2 pixels."""
     for s in range(n_scales):
         band_shape = (-(-shape[0] // 2**s), -(-shape[1] // 2**s))
-        if band_shape[0] % grid or band_shape[1] % grid:
-            step = grid * 2 ** (n_scales - 1)
+        tiles.check_tiles(grid, band_shape, f"scale-{s} band of a {shape[0]}×{shape[1]} image")
+
+
+def validate_layout(
+    shape: tuple[int, int],
+    grid: Any,
+    n_scales: Any,
+    n_orientations: Any,
+    bins: Any,
+    boundary: Any,
+) -> tuple[int, int, int, int | None]:
+    """Check the analysis settings for images of ``shape``; returns them as ints."""
+    grid = _checks.integer(grid, "grid", low=1)
+    if bins is not None:
+        bins = _checks.integer(bins, "bins", low=2)
+    n_scales = _checks.integer(n_scales, "n_scales", low=1)
+    n_orientations = _checks.integer(n_orientations, "n_orientations", low=1, high=16)
+    _checks.choice(boundary, "boundary", ("circular", "reflect"))
+    if n_scales > pyramid.max_scales(shape):
+        raise ValueError(
+            f"n_scales={n_scales} is too many for images of {shape[0]}×{shape[1]}: they allow "
+            f"at most {max(pyramid.max_scales(shape), 0)}"
+        )
+    check_layout(grid, shape, n_scales)
+    return grid, n_scales, n_orientations, bins
+
+
+def check_stats(stats: Any, name: str = "target") -> DetailStats:
+    """Raise TypeError/ValueError unless ``stats`` is well-formed :class:`DetailStats`:
+    finite, non-negative deviations, one band per pyramid band, consistent histograms."""
+    if not isinstance(stats, DetailStats):
+        raise TypeError(f"{name} must be DetailStats, got {type(stats).__name__}")
+    n_bands = 1 + stats.n_scales * stats.n_orientations
+    std = stats.std
+    if std.ndim < 3 or std.shape[-3] != n_bands or std.shape[-1] != std.shape[-2]:
+        raise ValueError(
+            f"{name}.std must be (..., {n_bands}, grid, grid) for {stats.n_scales} scales × "
+            f"{stats.n_orientations} orientations, got {tuple(std.shape)}"
+        )
+    if not _checks.is_traced(std):
+        if not bool(jnp.all(jnp.isfinite(std))):
+            raise ValueError(f"{name}.std must be finite, got NaN or infinite values")
+        if bool(jnp.any(std < 0)):
             raise ValueError(
-                f"grid={grid} must divide every band of a {shape[0]}×{shape[1]} image with "
-                f"n_scales={n_scales}, but scale {s} is {band_shape[0]}×{band_shape[1]}; use sides "
-                f"that are multiples of grid·2**(n_scales-1) = {step} (crop or resample), or "
-                "another grid"
+                f"{name}.std must be non-negative, got a minimum of {float(std.min())}"
             )
+    if (stats.probabilities is None) != (stats.ranges is None):
+        raise ValueError(f"{name} must have both probabilities and ranges, or neither")
+    if stats.full:
+        expected = (*std.shape, stats.probabilities.shape[-1])
+        if stats.probabilities.shape != expected or stats.ranges.shape != (*std.shape, 2):
+            raise ValueError(
+                f"{name} histograms must be {expected} with ranges {(*std.shape, 2)}, got "
+                f"{tuple(stats.probabilities.shape)} and {tuple(stats.ranges.shape)}"
+            )
+    return stats
+
+
+def check_weights(weights: ArrayLike, n: int, dtype) -> Float[Array, " n"]:
+    """Validate averaging weights: ``n`` finite, non-negative, summing to one."""
+    weights = _checks.float_array(weights, "weights", ndim=1).astype(dtype)
+    if weights.shape[0] != n:
+        raise ValueError(f"weights must have {n} entries (one per face), got {weights.shape[0]}")
+    if _checks.is_traced(weights):
+        return weights
+    if bool(jnp.any(weights < 0)):
+        raise ValueError(f"weights must be non-negative, got {weights.tolist()}")
+    if abs(float(weights.sum()) - 1.0) > 1e-4:
+        raise ValueError(f"weights must sum to 1, got {float(weights.sum()):.6g}")
+    return weights
 
 
 def analyze(
@@ -126,15 +189,9 @@ def analyze(
             band sizes, bad counts.
     """
     image = _checks.float_array(image, "image", ndim=2)
-    grid = _checks.integer(grid, "grid", low=1)
-    if bins is not None:
-        bins = _checks.integer(bins, "bins", low=2)
-    n_scales = _checks.integer(n_scales, "n_scales", low=0)
-    n_orientations = _checks.integer(n_orientations, "n_orientations", low=1, high=16)
-    _checks.choice(boundary, "boundary", ("circular", "reflect"))
-    if n_scales > pyramid.max_scales(image.shape):
-        pyramid.build(image, n_scales, n_orientations)  # raises the pyramid's own message
-    check_layout(grid, image.shape, n_scales)
+    grid, n_scales, n_orientations, bins = validate_layout(
+        image.shape, grid, n_scales, n_orientations, bins, boundary
+    )
     return _analyze(image, grid, n_scales, n_orientations, bins, boundary)
 
 
@@ -180,9 +237,7 @@ def mean_stats(stats: DetailStats, weights: ArrayLike | None = None) -> DetailSt
     n = stats.std.shape[0]
     if weights is None:
         weights = jnp.full(n, 1.0 / n, stats.std.dtype)
-    weights = _checks.float_array(weights, "weights", ndim=1).astype(stats.std.dtype)
-    if weights.shape[0] != n:
-        raise ValueError(f"weights must have {n} entries (one per face), got {weights.shape[0]}")
+    weights = check_weights(weights, n, stats.std.dtype)
     std = jnp.sqrt(jnp.einsum("n,n...->...", weights, stats.std**2))
     probabilities = ranges = None
     if stats.full:
@@ -236,13 +291,16 @@ def stats_from_arrays(arrays: dict[str, Any], meta: dict[str, Any], path) -> Det
         n_bands = 1 + meta["n_scales"] * meta["n_orientations"]
         if std.shape[-3:] != (n_bands, meta["grid"], meta["grid"]):
             raise ValueError(f"std has shape {std.shape}, expected (..., {n_bands}, g, g)")
-        return DetailStats(
-            std,
-            jnp.asarray(arrays["probabilities"]) if "probabilities" in arrays else None,
-            jnp.asarray(arrays["ranges"]) if "ranges" in arrays else None,
-            int(meta["n_scales"]),
-            int(meta["n_orientations"]),
-            tuple(int(n) for n in meta["image_shape"]),
+        return check_stats(
+            DetailStats(
+                std,
+                jnp.asarray(arrays["probabilities"]) if "probabilities" in arrays else None,
+                jnp.asarray(arrays["ranges"]) if "ranges" in arrays else None,
+                int(meta["n_scales"]),
+                int(meta["n_orientations"]),
+                tuple(int(n) for n in meta["image_shape"]),
+            ),
+            "statistics",
         )
     except (KeyError, TypeError, ValueError) as err:
         raise ValueError(f"{path} holds malformed statistics: {err}") from err

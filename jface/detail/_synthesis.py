@@ -10,7 +10,7 @@ from jax.typing import ArrayLike
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from jface import _checks, pyramid, tiles
-from jface.detail._stats import DetailStats, check_layout
+from jface.detail._stats import DetailStats, check_layout, check_stats
 
 #: Defaults chosen on real textures (see tests/test_detail.py and benchmarks/bench_detail.py).
 N_ITER = 12
@@ -61,9 +61,9 @@ def synthesize(
         TypeError, ValueError: bad start image, statistics of another layout or image shape,
             bad counts or ranges.
     """
+    key = _checks.key(key)
     start = _checks.float_array(start, "start", ndim=2)
-    if not isinstance(target, DetailStats):
-        raise TypeError(f"target must be DetailStats, got {type(target).__name__}")
+    check_stats(target, "target")
     if target.std.ndim != 3:
         raise ValueError(
             f"target must be the statistics of one image (bands, grid, grid), got a stack of "
@@ -84,12 +84,12 @@ def synthesize(
     if method == "histogram":
         if not target.full:
             raise ValueError("method='histogram' needs full statistics: analyze(..., bins=128)")
-        tile = start.shape[0] // target.grid // 2 ** (target.n_scales - 1)
-        if tile % 2:
+        tile = [n // target.grid // 2 ** (target.n_scales - 1) for n in start.shape]
+        if tile[0] % 2 or tile[1] % 2:
             raise ValueError(
                 f"method='histogram' needs an even number of pixels per tile side in every "
                 f"band, but the coarsest band of {tuple(start.shape)} with grid={target.grid} "
-                f"has {tile}"
+                f"has tiles of {tile[0]}×{tile[1]}"
             )
     check_layout(target.grid, start.shape, target.n_scales)
     target = jax.tree.map(lambda x: x.astype(start.dtype), target)

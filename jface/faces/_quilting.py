@@ -228,12 +228,9 @@ def _quilt(
 
 
 def check_key(key: Any) -> PRNGKeyArray:
-    """Validate a typed JAX key (``jax.random.key``)."""
-    if not (isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key)):
-        raise TypeError(
-            f"key must be a typed JAX key from jax.random.key(seed), got {_checks.describe(key)}"
-        )
-    if key.shape != ():
+    """Validate one JAX random key (vmap for many)."""
+    key = _checks.key(key)
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape != ():
         raise ValueError(f"key must be a single key (vmap for many), got shape {key.shape}")
     return key
 

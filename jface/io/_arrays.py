@@ -57,12 +57,16 @@ def load_arrays(path: str | os.PathLike, *, kind: str) -> tuple[dict[str, np.nda
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
-        raise ValueError(
-            f"{path} is not a readable jface file (corrupt or truncated?): {err}"
-        ) from err
+        msg = f"{path} is not a readable jface .npz file (corrupt, truncated or another format)"
+        raise ValueError(msg) from err
     if _META not in arrays:
         raise ValueError(f"{path} is not a jface file: it has no metadata")
-    metadata = json.loads(arrays.pop(_META).tobytes().decode())
+    try:
+        metadata = json.loads(arrays.pop(_META).tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path} has corrupt metadata: {err}") from err
+    if not isinstance(metadata, dict):
+        raise ValueError(f"{path} has corrupt metadata: not a JSON object")
     found = metadata.pop("kind", None)
     if found != kind:
         raise ValueError(f"{path} holds {found!r}, expected {kind!r}")

@@ -156,8 +156,10 @@ def read_map(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
             data = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError) as err:
             raise ValueError(f"{path} is not a readable .npy array: {err}") from err
-        if data.ndim != 2 or data.dtype.kind not in "fiu":
-            raise ValueError(f"{path} must hold a 2-D numeric map, got {data.shape} {data.dtype}")
+        if data.ndim != 2:
+            raise ValueError(f"{path} must hold a 2-D map, got shape {data.shape}")
+        if data.dtype.kind != "f":
+            raise TypeError(f"{path} must hold a floating-point map, got {data.dtype}")
         return data.astype(np.float32)
     if suffix != ".exr":
         return read_image(path, grey=True)

@@ -1,0 +1,295 @@
+"""Triangle meshes (OBJ/PLY) and landmark files (JSON/CSV).
+
+Meshes are read through trimesh, which knows many formats and their quirks; they are written by
+jface itself (plain OBJ with one ``vt`` per vertex, binary little-endian PLY with ``s, t``
+vertex properties) so the UVs of a remeshed face survive the round trip exactly.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from jface.io._files import atomic_path, write_json
+
+#: A landmark is a vertex id of the scan or a 3-D point.
+Landmark = int | tuple[float, float, float]
+
+
+class MeshData(NamedTuple):
+    """A triangle mesh as numpy arrays.
+
+    Attributes:
+        vertices: ``(V, 3)`` float64 positions.
+        faces: ``(F, 3)`` int64 vertex indices, counter-clockwise seen from outside.
+        uv: ``(V, 2)`` float64 texture coordinates (one per vertex), or None.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None = None
+
+
+def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
+    """Read a triangle mesh (OBJ, PLY, STL, OFF, GLB, ...) through trimesh.
+
+    Args:
+        path: the mesh file.
+        merge: merge vertices that share a position (texture seams of scans split them). UVs are
+            kept only when the file has exactly one per vertex after loading.
+
+    Returns:
+        :class:`MeshData` (quads and polygons are triangulated by trimesh).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: unreadable, empty, a point cloud or a mesh without faces, or faces that
+            index missing vertices.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such mesh file: {path}")
+    try:
+        loaded = trimesh.load(str(path), process=merge)
+        if isinstance(loaded, trimesh.Scene):
+            parts = list(loaded.geometry.values())
+            meshes = [g for g in parts if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+            loaded = trimesh.util.concatenate(meshes) if meshes else (parts[0] if parts else None)
+    except Exception as err:  # trimesh raises many types for bad files
+        raise ValueError(f"{path} is not a readable mesh (corrupt or truncated?): {err}") from err
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
+    if vertices.ndim != 2 or len(vertices) == 0:
+        raise ValueError(f"{path} holds no vertices: the mesh is empty")
+    if faces.ndim != 2 or len(faces) == 0:
+        raise ValueError(
+            f"{path} has {len(vertices)} vertices but no faces (a point cloud?); "
+            "a triangle mesh is needed"
+        )
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(f"{path}: faces index vertices outside [0, {len(vertices)})")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"{path}: vertex positions contain NaN or infinity")
+    uv = None
+    visual = getattr(loaded, "visual", None)
+    raw_uv = getattr(visual, "uv", None) if visual is not None else None
+    if raw_uv is not None and len(raw_uv) == len(vertices):
+        uv = np.asarray(raw_uv, dtype=np.float64)
+    return MeshData(vertices, faces, uv)
+
+
+def write_mesh(
+    path: str | os.PathLike,
+    vertices: Any,
+    faces: Any,
+    *,
+    uv: Any = None,
+    comment: str = "",
+    protect: tuple[str | os.PathLike, ...] = (),
+) -> Path:
+    """Write a triangle mesh with optional per-vertex UVs as OBJ or PLY, atomically.
+
+    Args:
+        path: output file; the suffix (".obj" or ".ply") picks the format.
+        vertices: ``(V, 3)`` positions.
+        faces: ``(F, 3)`` vertex indices.
+        uv: ``(V, 2)`` texture coordinates or None (OBJ: ``vt`` lines, PLY: ``s, t``).
+        comment: one line of provenance written as a comment in the header.
+        protect: input files this output must not overwrite.
+
+    Raises:
+        ValueError: unknown suffix, bad shapes, indices out of range or non-finite values.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".obj", ".ply"):
+        raise ValueError(f"mesh path must end in .obj or .ply, got {path.name!r}")
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        raise ValueError(f"vertices must have shape (V, 3) with V > 0, got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.dtype.kind not in "iu":
+        raise ValueError(f"faces must be integers of shape (F, 3), got {faces.shape} {faces.dtype}")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(f"faces index vertices outside [0, {len(vertices)})")
+    if uv is not None:
+        uv = np.asarray(uv, dtype=np.float64)
+        if uv.shape != (len(vertices), 2):
+            raise ValueError(f"uv must have shape ({len(vertices)}, 2), got {uv.shape}")
+    for name, arr in (("vertices", vertices), ("uv", uv)):
+        if arr is not None and not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} must be finite to be written")
+    comment = " ".join(str(comment).split())
+    with atomic_path(path, protect=protect) as tmp:
+        if suffix == ".obj":
+            _write_obj(tmp, vertices, faces.astype(np.int64), uv, comment)
+        else:
+            _write_ply(tmp, vertices, faces.astype(np.int64), uv, comment)
+    return path
+
+
+def _write_obj(path: Path, vertices, faces, uv, comment: str) -> None:
+    out = io.StringIO()
+    if comment:
+        out.write(f"# {comment}\n")
+    np.savetxt(out, vertices, fmt="v %.8g %.8g %.8g")
+    one = faces + 1
+    if uv is not None:
+        np.savetxt(out, uv, fmt="vt %.8g %.8g")
+        np.savetxt(out, np.repeat(one, 2, axis=1), fmt="f %d/%d %d/%d %d/%d")
+    else:
+        np.savetxt(out, one, fmt="f %d %d %d")
+    path.write_text(out.getvalue())
+
+
+def _write_ply(path: Path, vertices, faces, uv, comment: str) -> None:
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if uv is not None:
+        fields += [("s", "<f4"), ("t", "<f4")]
+    vert = np.empty(len(vertices), dtype=fields)
+    for i, axis in enumerate("xyz"):
+        vert[axis] = vertices[:, i]
+    if uv is not None:
+        vert["s"], vert["t"] = uv[:, 0], uv[:, 1]
+    face = np.empty(len(faces), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+    face["n"], face["idx"] = 3, faces
+    header = ["ply", "format binary_little_endian 1.0"]
+    if comment:
+        header.append(f"comment {comment}")
+    header.append(f"element vertex {len(vertices)}")
+    header += [f"property float {name}" for name, _ in fields]
+    header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+    with open(path, "wb") as handle:
+        handle.write(("\n".join(header) + "\n").encode())
+        handle.write(vert.tobytes())
+        handle.write(face.tobytes())
+
+
+# --- landmarks ---------------------------------------------------------------------------------
+
+
+def read_landmarks(path: str | os.PathLike) -> dict[str, Landmark]:
+    """Read named landmarks from JSON or CSV.
+
+    JSON: an object ``{"nose_tip": 1, "chin": [0.0, -9.4, 4.3], ...}`` (optionally nested under a
+    "landmarks" key): each value is a vertex id of the scan (as :func:`read_mesh` numbers the
+    vertices) or a 3-D point. CSV: rows
+    ``name,id`` or ``name,x,y,z``; a first row whose second field is not a number is a header.
+
+    Returns:
+        name → vertex id (int) or point (3 floats), in file order.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: unreadable file, duplicate names, or a value that is neither an id nor a
+            3-D point. (Missing and unknown names are checked against the template by
+            :func:`jface.mesh.landmark_points`.)
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such landmark file: {path}")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path} is not a readable text file: {err}") from err
+    is_csv = path.suffix.lower() == ".csv"
+    pairs = _csv_pairs(path, text) if is_csv else _json_pairs(path, text)
+    seen: dict[str, Landmark] = {}
+    duplicates = []
+    for name, value in pairs:
+        if name in seen:
+            duplicates.append(name)
+        seen[name] = _landmark_value(path, name, value)
+    if duplicates:
+        raise ValueError(f"{path}: duplicate landmark name(s) {sorted(set(duplicates))}")
+    if not seen:
+        raise ValueError(f"{path} holds no landmarks")
+    return seen
+
+
+def _json_pairs(path: Path, text: str) -> list[tuple[str, Any]]:
+    def keep_pairs(pairs):
+        return pairs
+
+    try:
+        data = json.loads(text, object_pairs_hook=keep_pairs)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON: {err}") from err
+    if isinstance(data, list) and len(data) == 1 and data[0][0] == "landmarks":
+        data = data[0][1]
+    if not isinstance(data, list) or not all(isinstance(p, tuple) for p in data):
+        raise ValueError(f"{path} must hold a JSON object of name → vertex id or [x, y, z]")
+    return [(str(name), value) for name, value in data]
+
+
+def _csv_pairs(path: Path, text: str) -> list[tuple[str, Any]]:
+    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    rows = [[c.strip() for c in r] for r in rows if not r[0].lstrip().startswith("#")]
+    if rows and len(rows[0]) > 1 and not _is_number(rows[0][1]):
+        rows = rows[1:]
+    pairs = []
+    for i, row in enumerate(rows):
+        if len(row) == 2:
+            pairs.append((row[0], row[1]))
+        elif len(row) == 4:
+            pairs.append((row[0], row[1:]))
+        else:
+            raise ValueError(
+                f"{path}, data row {i + 1}: expected 'name,id' or 'name,x,y,z', got {row}"
+            )
+    return pairs
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _landmark_value(path: Path, name: str, value: Any) -> Landmark:
+    what = f"{path}: landmark {name!r} must be a vertex id or three coordinates, got {value!r}"
+    if isinstance(value, bool):
+        raise ValueError(what)
+    if isinstance(value, int):
+        return value
+    if isinstance(value, str):
+        try:
+            number = float(value)
+        except ValueError:
+            raise ValueError(what) from None
+        if number != int(number):
+            raise ValueError(what)
+        return int(number)
+    if isinstance(value, (list, tuple)) and len(value) == 3:
+        try:
+            point = tuple(float(c) for c in value)
+        except (TypeError, ValueError):
+            raise ValueError(what) from None
+        if not all(np.isfinite(point)):
+            raise ValueError(f"{path}: landmark {name!r} must be finite, got {value!r}")
+        return point  # type: ignore[return-value]
+    raise ValueError(what)
+
+
+def write_landmarks(
+    path: str | os.PathLike,
+    landmarks: dict[str, Any],
+    *,
+    protect: tuple[str | os.PathLike, ...] = (),
+) -> Path:
+    """Write name → vertex id or 3-D point as JSON (readable by :func:`read_landmarks`)."""
+    data = {}
+    for name, value in landmarks.items():
+        arr = np.asarray(value)
+        data[str(name)] = int(arr) if arr.ndim == 0 else [float(c) for c in arr.reshape(-1)]
+    return write_json(path, data, protect=protect)

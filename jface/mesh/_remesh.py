@@ -1,0 +1,369 @@
+"""Remeshing a face scan into a base mesh plus a scalar displacement image, and back
+(Golovinskiy et al. 2006, §2.2, after Guskov et al. 2000 and Lee et al. 2000).
+
+1. The 21 landmarks form the marker mesh (level 0), snapped onto the scan.
+2. ``n_linear`` linear then ``n_loop`` Loop subdivisions, each followed by moving every vertex
+   along its normal to the nearest intersection with the scan: levels 1..4 of the hierarchy. The
+   signed normal offsets of each level are kept: the marker mesh plus these offsets is the
+   hierarchical decomposition of the face (:func:`reconstruct`), and mixing levels of two faces is
+   how the paper ages a face.
+3. ``n_smooth`` Loop subdivisions without projection: the smooth base mesh.
+4. Each base vertex is projected along the base normal onto the scan; the signed distance is the
+   displacement, rasterised through the rectangle coordinates into the displacement image.
+
+Rays that miss the scan (holes, borders) are counted per level and filled with the value of the
+nearest vertex (in the rectangle) whose ray hit, so no NaN reaches an output.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax.typing import ArrayLike
+from jaxtyping import Array, Bool, Float, Int
+from tqdm.auto import tqdm
+
+from jface import _checks
+from jface.mesh._geometry import image_sampler, mean_edge_length, sample_image, vertex_normals
+from jface.mesh._raycast import Method, ScanIndex, cast, closest_points
+from jface.mesh._subdivision import Hierarchy, check_manifold, subdivide, template_hierarchy
+from jface.mesh._template import LANDMARK_NAMES, landmark_points
+
+
+class Mesh(eqx.Module):
+    """A triangle mesh with optional per-vertex rectangle (uv) coordinates.
+
+    Attributes:
+        vertices: ``(V, 3)`` positions.
+        faces: ``(F, 3)`` int32 triangles, counter-clockwise seen from outside.
+        uv: ``(V, 2)`` coordinates in the unit square, or None.
+    """
+
+    vertices: Float[Array, "v 3"]
+    faces: Int[Array, "f 3"]
+    uv: Float[Array, "v 2"] | None = None
+
+
+class Remeshed(eqx.Module):
+    """A scan remeshed onto the marker template.
+
+    Attributes:
+        markers: ``(21, 3)`` marker-mesh vertices (the landmarks snapped onto the scan).
+        offsets: per projected level, the ``(V_k,)`` signed offsets along the normals of the
+            subdivided previous level (the hierarchical decomposition; :func:`reconstruct`).
+        control: ``(V_c, 3)`` the last projected level (the control mesh of the base mesh).
+        base: the smooth base mesh, with its rectangle coordinates.
+        displacement: ``(V_b,)`` signed displacement of each base vertex along its normal.
+        image: ``(H, W)`` the displacement image.
+        hit_rate: per projected level and the base projection, the fraction of rays that hit.
+        missed: ``(V_b,)`` base vertices whose ray missed (their displacement is filled).
+        schedule: ``(n_linear, n_loop, n_smooth)`` (static).
+    """
+
+    markers: Float[Array, "n 3"]
+    offsets: tuple[Float[Array, " _"], ...]
+    control: Float[Array, "c 3"]
+    base: Mesh
+    displacement: Float[Array, " b"]
+    image: Float[Array, "h w"]
+    hit_rate: Float[Array, " k"]
+    missed: Bool[Array, " b"]
+    schedule: tuple[int, int, int] = eqx.field(static=True)
+
+    def hierarchy(self) -> Hierarchy:
+        """The template levels this face was remeshed on."""
+        return template_hierarchy(None, *self.schedule)
+
+
+def _scan_arrays(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
+    verts = np.asarray(_checks.float_array(vertices, "scan vertices", ndim=2), dtype=np.float64)
+    if verts.shape[1] != 3:
+        raise ValueError(f"scan vertices must have shape (V, 3), got {verts.shape}")
+    if faces is None or np.size(faces) == 0:
+        raise ValueError("the scan has no faces: a triangle mesh is needed, not a point cloud")
+    tri = np.asarray(faces)
+    if tri.dtype.kind not in "iu":
+        raise TypeError(f"scan faces must be integers, got dtype {tri.dtype}")
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        raise ValueError(f"scan faces must have shape (F, 3), got {tri.shape}")
+    if tri.min() < 0 or tri.max() >= len(verts):
+        raise ValueError(f"scan faces index vertices outside [0, {len(verts)})")
+    check_manifold(tri, len(verts), "the scan")
+    return verts, tri.astype(np.int64)
+
+
+def _fill(values: np.ndarray, hit: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Give missed vertices the value of the nearest hit vertex in the rectangle."""
+    if hit.all():
+        return values
+    if not hit.any():
+        raise ValueError(
+            "no normal ray met the scan: are the landmarks on the scan, and named left/right "
+            "from the subject's point of view?"
+        )
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(uv[hit]).query(uv[~hit])
+    out = values.copy()
+    out[~hit] = values[hit][nearest]
+    return out
+
+
+def _image_shape(image_size: Any) -> tuple[int, int]:
+    if isinstance(image_size, (tuple, list)):
+        if len(image_size) != 2:
+            raise ValueError(f"image_size must be an int or (H, W), got {image_size!r}")
+        return tuple(_checks.integer(s, "image_size", low=8, high=16384) for s in image_size)
+    size = _checks.integer(image_size, "image_size", low=8, high=16384)
+    return size, size
+
+
+def remesh(
+    scan_vertices: ArrayLike,
+    scan_faces: ArrayLike,
+    landmarks: Any,
+    *,
+    image_size: int | tuple[int, int] = 1024,
+    n_linear: int = 2,
+    n_loop: int = 2,
+    n_smooth: int = 3,
+    method: Method = "auto",
+    search: float = 2.0,
+    landmark_tolerance: float = 0.02,
+    fit: int = 0,
+    progress: bool = False,
+) -> Remeshed:
+    """Remesh a face scan onto the marker template (Golovinskiy et al. 2006, §2.2).
+
+    Host-side (ray casting is not traceable); subdivision, normals and rasterisation run in JAX.
+
+    Args:
+        scan_vertices: ``(V, 3)`` scan positions (any unit).
+        scan_faces: ``(F, 3)`` scan triangles.
+        landmarks: the 21 template landmarks: a mapping name → scan vertex id or 3-D point
+            (e.g. from :func:`jface.io.read_landmarks`), or a ``(21, 3)`` array in template order.
+        image_size: displacement image size, ``N`` (N×N) or ``(H, W)`` (paper: 1024).
+        n_linear, n_loop: projected linear and Loop subdivisions (paper: 2 and 2).
+        n_smooth: Loop subdivisions of the control mesh giving the base mesh (paper: 3).
+        method: ray caster, "auto" (Embree when installed), "embree" or "kdtree".
+        search: projection reach, in mean edge lengths of the mesh being projected (the control
+            mesh for the base projection); farther intersections count as misses.
+        landmark_tolerance: largest allowed landmark distance from the scan, as a fraction of
+            the scan's bounding-box diagonal.
+        fit: Gauss–Newton iterations of a least-squares fit of the control mesh to the scan
+            (Lee et al. 2000) before smoothing; 0 (default) is the paper's method, where the
+            control mesh interpolates the scan at its vertices, so the base mesh picks up
+            detail aliased at those vertices and the shrinkage of Loop smoothing. 1–2
+            iterations remove both from the displacement image.
+        progress: show a progress bar over the levels.
+
+    Returns:
+        :class:`Remeshed`.
+
+    Raises:
+        ValueError: bad or non-manifold scan, missing/unknown landmark names, landmarks far from
+            the surface, or no ray meeting the scan.
+    """
+    verts, faces = _scan_arrays(scan_vertices, scan_faces)
+    shape = _image_shape(image_size)
+    search = _checks.real(search, "search", low=0.0, open_low=True)
+    tolerance = _checks.real(landmark_tolerance, "landmark_tolerance", low=0.0, open_low=True)
+    fit = _checks.integer(fit, "fit", low=0, high=10)
+    hier = template_hierarchy(None, n_linear, n_loop, n_smooth)
+    points = np.asarray(landmark_points(landmarks, verts), dtype=np.float64)
+    index = ScanIndex(verts, faces, method)
+    markers, dist = closest_points(index, points)
+    diagonal = float(np.linalg.norm(verts.max(0) - verts.min(0)))
+    far = np.flatnonzero(dist > tolerance * diagonal)
+    if len(far):
+        listing = ", ".join(f"{LANDMARK_NAMES[i]} ({dist[i]:.3g})" for i in far)
+        raise ValueError(
+            f"landmarks far from the scan surface (more than {tolerance:g} × the bounding-box "
+            f"diagonal = {tolerance * diagonal:.3g}): {listing}"
+        )
+    steps = tqdm(total=hier.n_projected + 1 + fit, desc="remesh", disable=not progress)
+    position = jnp.asarray(markers, dtype=jnp.float32)
+    offsets, rates = [], []
+    directions = position
+    for level in hier.levels[1 : hier.n_projected + 1]:
+        position, offset, hit, directions = _project(index, level.operator(position), level, search)
+        offsets.append(offset)
+        rates.append(hit.mean())
+        steps.update()
+    control = position
+    base_faces = jnp.asarray(hier.base.faces)
+    reach = search * mean_edge_length(np.asarray(control), hier.control.faces)
+    if fit and hier.n_projected and len(hier.levels) > hier.n_projected + 1:
+        delta = _fit_control(index, hier, control, directions, reach, fit)
+        control = control + delta[:, None] * directions
+        offsets[-1] = offsets[-1] + delta
+        steps.update()
+    base = _smooth(hier, control)
+    normals = vertex_normals(base, base_faces)
+    hits = cast(index, np.asarray(base), np.asarray(normals), reach)
+    displacement = _fill(hits.distance, hits.hit, np.asarray(hier.base.uv))
+    rates.append(hits.hit.mean())
+    steps.update()
+    steps.close()
+    displacement = jnp.asarray(displacement, dtype=jnp.float32)
+    image = image_sampler(np.asarray(hier.base.uv), hier.base.faces, shape)(displacement)
+    return Remeshed(
+        markers=jnp.asarray(markers, dtype=jnp.float32),
+        offsets=tuple(offsets),
+        control=control,
+        base=Mesh(base, base_faces, hier.base.uv),
+        displacement=displacement,
+        image=image,
+        hit_rate=jnp.asarray(rates, dtype=jnp.float32),
+        missed=jnp.asarray(~hits.hit),
+        schedule=(n_linear, n_loop, n_smooth),
+    )
+
+
+def _project(index: ScanIndex, position: Array, level, search: float):
+    """Move the vertices of a subdivided level along their normals onto the scan."""
+    normals = vertex_normals(position, jnp.asarray(level.faces))
+    reach = search * mean_edge_length(np.asarray(position), level.faces)
+    hits = cast(index, np.asarray(position), np.asarray(normals), reach)
+    offset = jnp.asarray(_fill(hits.distance, hits.hit, np.asarray(level.uv)), dtype=jnp.float32)
+    return position + offset[:, None] * normals, offset, hits.hit, normals
+
+
+def _smooth(hier: Hierarchy, control: Array) -> Array:
+    base = control
+    for level in hier.levels[hier.n_projected + 1 :]:
+        base = level.operator(base)
+    return base
+
+
+def _fit_control(
+    index: ScanIndex, hier: Hierarchy, control: Array, directions: Array, reach: float, n: int
+) -> Array:
+    """Least-squares fit of the control mesh along its projection directions, so the base
+    surface approximates the scan instead of interpolating it at the control vertices (the
+    fitting step of Lee et al. 2000, §4): Gauss–Newton on ``Σ_b disp_b²`` over base vertices."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import lsqr
+
+    smooth = None
+    for level in hier.levels[hier.n_projected + 1 :]:
+        op = level.operator
+        m = sp.csr_matrix(
+            (np.asarray(op.weights, np.float64), (np.asarray(op.rows), np.asarray(op.cols))),
+            shape=(op.n_out, op.n_in),
+        )
+        smooth = m if smooth is None else m @ smooth
+    smooth = smooth.tocoo()
+    dirs = np.asarray(directions, dtype=np.float64)
+    delta = np.zeros(control.shape[0])
+    base_faces = jnp.asarray(hier.base.faces)
+    for _ in range(n):
+        moved = control + jnp.asarray(delta[:, None], dtype=jnp.float32) * directions
+        base = _smooth(hier, moved)
+        normals = np.asarray(vertex_normals(base, base_faces), dtype=np.float64)
+        hits = cast(index, np.asarray(base), normals, reach)
+        rows = np.flatnonzero(hits.hit)
+        keep = hits.hit[smooth.row]
+        r, c = smooth.row[keep], smooth.col[keep]
+        data = smooth.data[keep] * np.einsum("ij,ij->i", normals[r], dirs[c])
+        a = sp.csr_matrix((data, (r, c)), shape=smooth.shape)[rows]
+        step = lsqr(a, hits.distance[rows], damp=1e-3, atol=1e-8, btol=1e-8, iter_lim=500)[0]
+        delta = delta + step
+    return jnp.asarray(delta, dtype=jnp.float32)
+
+
+def reconstruct(
+    markers: ArrayLike, offsets: tuple[ArrayLike, ...], hierarchy: Hierarchy
+) -> Float[Array, "c 3"]:
+    """Rebuild the control mesh from the marker mesh and per-level offsets.
+
+    ``P_k = S_k P_{k-1} + o_k · n(S_k P_{k-1})``: the inverse of the projection steps of
+    :func:`remesh`, exact for its own output. Offsets of different faces can be mixed level by
+    level (same topology for every face): coarse levels from one face, fine ones from another.
+
+    Args:
+        markers: ``(21, 3)`` marker-mesh vertices.
+        offsets: one ``(V_k,)`` array per projected level of ``hierarchy``.
+        hierarchy: from :meth:`Remeshed.hierarchy` or :func:`template_hierarchy`.
+    """
+    position = _checks.float_array(markers, "markers", ndim=2).astype(jnp.float32)
+    if len(offsets) != hierarchy.n_projected:
+        raise ValueError(f"offsets must hold {hierarchy.n_projected} levels, got {len(offsets)}")
+    for k, (level, offset) in enumerate(
+        zip(hierarchy.levels[1 : hierarchy.n_projected + 1], offsets, strict=True)
+    ):
+        offset = _checks.float_array(offset, f"offsets[{k}]", ndim=1).astype(jnp.float32)
+        position = level.operator(position)
+        if offset.shape[0] != position.shape[0]:
+            raise ValueError(
+                f"offsets[{k}] must have {position.shape[0]} values, got {offset.shape[0]}"
+            )
+        normals = vertex_normals(position, jnp.asarray(level.faces))
+        position = position + offset[:, None] * normals
+    return position
+
+
+def displace(
+    base: Any,
+    image: ArrayLike,
+    *,
+    extra_subdivisions: int = 0,
+    scale: float = 1.0,
+) -> Mesh:
+    """Apply a displacement image to a base mesh: the detailed face.
+
+    Each vertex moves along the base normal by ``scale ×`` the image sampled (bilinearly) at its
+    rectangle coordinates. With ``extra_subdivisions`` the base is first split at its edge
+    midpoints, positions, rectangle coordinates and normals alike, so detail finer than the
+    base mesh shows: the new vertices lie on the base triangles, where :func:`remesh` measured
+    the displacement, and move along interpolated normals.
+
+    Args:
+        base: a mesh with ``vertices (V, 3)``, ``faces (F, 3)`` and ``uv (V, 2)``
+            (:class:`Mesh`, :class:`jface.io.MeshData`, or :attr:`Remeshed.base`).
+        image: ``(H, W)`` displacement image (same units as the mesh).
+        extra_subdivisions: midpoint subdivisions before displacing (0–3).
+        scale: factor on the displacement (0 gives the base mesh, 2 exaggerates).
+
+    Returns:
+        The displaced :class:`Mesh` (with uv).
+
+    Raises:
+        ValueError: a base without uv, bad shapes, non-manifold base, bad image.
+        TypeError: ``base`` is not a mesh.
+    """
+    if not all(hasattr(base, name) for name in ("vertices", "faces", "uv")):
+        raise TypeError(f"base must be a mesh with vertices, faces and uv, got {type(base)}")
+    if base.uv is None:
+        raise ValueError("base has no uv (rectangle coordinates); displace needs them")
+    vertices = _checks.float_array(base.vertices, "base.vertices", ndim=2).astype(jnp.float32)
+    uv = _checks.float_array(base.uv, "base.uv", ndim=2).astype(jnp.float32)
+    faces = np.asarray(base.faces)
+    if vertices.shape[1] != 3 or uv.shape != (vertices.shape[0], 2):
+        raise ValueError(
+            f"base.vertices must be (V, 3) and base.uv (V, 2), got {tuple(vertices.shape)} "
+            f"and {tuple(uv.shape)}"
+        )
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.size == 0 or faces.dtype.kind not in "iu":
+        raise ValueError(f"base.faces must be integers of shape (F, 3), got {faces.shape}")
+    if faces.min() < 0 or faces.max() >= vertices.shape[0]:
+        raise ValueError(f"base.faces index vertices outside [0, {vertices.shape[0]})")
+    image = _checks.float_array(image, "image", ndim=2).astype(jnp.float32)
+    extra = _checks.integer(extra_subdivisions, "extra_subdivisions", low=0, high=3)
+    scale = _checks.real(scale, "scale")
+    check_manifold(faces, vertices.shape[0], "the base mesh")
+    normals = vertex_normals(vertices, jnp.asarray(faces, dtype=jnp.int32))
+    if extra:
+        # Midpoint subdivision of positions, uv and normals: the new vertices lie on the base
+        # triangles (where the displacement was measured) with interpolated normals.
+        stacked, faces = subdivide(
+            jnp.concatenate([vertices, uv, normals], axis=1), faces, "linear", levels=extra
+        )
+        vertices, uv, normals = stacked[:, :3], stacked[:, 3:5], stacked[:, 5:]
+        normals = normals / jnp.linalg.norm(normals, axis=1, keepdims=True)
+    faces_j = jnp.asarray(faces, dtype=jnp.int32)
+    amount = jnp.asarray(scale, dtype=jnp.float32) * sample_image(image, uv)
+    return Mesh(vertices + amount[:, None] * normals, faces_j, uv)

@@ -1,0 +1,172 @@
+"""jface.mesh remeshing on real faces: round trip with known detail, correspondence between
+faces, a real head scan, the two ray casters, and bad input."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+from conftest import SHARED_DATA
+from scipy.spatial import cKDTree
+
+from jface import io, mesh
+
+#: Small schedule for tests: 2 linear + 1 Loop projected, 3 Loop smoothing → 131k triangles.
+SCHEDULE = {"n_linear": 2, "n_loop": 1, "n_smooth": 3}
+
+
+def _distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance from points to a triangle mesh (closest point over the 16 nearest triangles)."""
+    tri = vertices[faces]
+    _, cand = cKDTree(tri.mean(axis=1)).query(points, k=16)
+    q = trimesh.triangles.closest_point(tri[cand.ravel()], np.repeat(points, 16, axis=0))
+    return np.linalg.norm(q - np.repeat(points, 16, axis=0), axis=1).reshape(-1, 16).min(axis=1)
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    return mesh.synthetic_scan(jax.random.key(3), n_subdivisions=4, wavelength=0.12, amplitude=0.05)
+
+
+@pytest.fixture(scope="module")
+def remeshed(synthetic):
+    scan = synthetic.scan
+    return mesh.remesh(
+        scan.vertices,
+        np.asarray(scan.faces),
+        synthetic.landmarks,
+        image_size=256,
+        fit=3,
+        **SCHEDULE,
+    )
+
+
+def _known_image(synthetic, result) -> np.ndarray:
+    known = mesh.known_displacement(synthetic, result.base)
+    return np.asarray(mesh.image_sampler(result.base.uv, result.base.faces, (256, 256))(known))
+
+
+def test_round_trip_recovers_known_detail(synthetic, remeshed):
+    image = np.asarray(remeshed.image)
+    assert image.shape == (256, 256) and np.all(np.isfinite(image))
+    known = _known_image(synthetic, remeshed)
+    inside = (slice(26, -26), slice(26, -26))  # the face without a 10% border
+    corr = np.corrcoef(known[inside].ravel(), image[inside].ravel())[0, 1]
+    print(f"round trip: correlation {corr:.4f}, hit rates {np.asarray(remeshed.hit_rate)}")
+    assert corr >= 0.95
+
+
+def test_redisplaced_mesh_is_close_to_scan(synthetic, remeshed):
+    # The same remeshing rasterised at the paper's 1024² (256² pixels of 0.6 mm are too coarse
+    # for the 1.2 mm waves).
+    base = remeshed.base
+    image = mesh.image_sampler(base.uv, base.faces, (1024, 1024))(remeshed.displacement)
+    detailed = mesh.displace(base, image)
+    verts = np.asarray(detailed.vertices)
+    scan_v, scan_f = np.asarray(synthetic.scan.vertices), np.asarray(synthetic.scan.faces)
+    hit = ~np.asarray(remeshed.missed)  # rays that missed (the scan's border) were filled
+    to_scan = _distance_to_mesh(verts, scan_v, scan_f)
+    # Scan → re-displaced mesh, over the part of the scan the marker mesh covers (nearest
+    # re-displaced vertex at least 3% of the rectangle away from its border).
+    _, nearest = cKDTree(verts).query(scan_v)
+    uv = np.asarray(detailed.uv)[nearest]
+    covered = np.minimum(uv, 1.0 - uv).min(axis=1) > 0.03
+    to_mesh = _distance_to_mesh(scan_v[covered], verts, np.asarray(detailed.faces))
+    base_gap = _distance_to_mesh(np.asarray(base.vertices), scan_v, scan_f)
+    mm = 10.0
+    print(
+        f"re-displaced→scan: max {to_scan[hit].max() * mm:.3f} mm over hit vertices "
+        f"({to_scan.max() * mm:.3f} with the filled border), mean {to_scan.mean() * mm:.4f} mm "
+        f"(base→scan mean {base_gap.mean() * mm:.4f} mm); scan→re-displaced: max "
+        f"{to_mesh.max() * mm:.3f} mm, 99.9% {np.percentile(to_mesh, 99.9) * mm:.3f} mm, 99% "
+        f"{np.percentile(to_mesh, 99) * mm:.3f} mm"
+    )
+    assert to_scan.mean() < 0.25 * base_gap.mean()  # displacing brings the base onto the scan
+    assert to_scan[hit].max() < 0.05  # cm: 0.5 mm on a 16 cm face with 0.5 mm RMS detail
+    # Scan→mesh is limited by the base mesh's vertex spacing (0.5 mm here, against 1.2–2.4 mm
+    # waves: crests between vertices are cut) and by the creases at the mouth corners, which a
+    # height field over the base cannot reach.
+    assert np.percentile(to_mesh, 99) < 0.1 and to_mesh.max() < 0.25
+
+
+def test_hierarchy_reconstructs_control_and_displace_scale_zero_is_base(remeshed):
+    control = mesh.reconstruct(remeshed.markers, remeshed.offsets, remeshed.hierarchy())
+    np.testing.assert_allclose(control, remeshed.control, atol=1e-4)
+    flat = mesh.displace(remeshed.base, remeshed.image, scale=0.0)
+    np.testing.assert_allclose(flat.vertices, remeshed.base.vertices, atol=1e-6)
+    finer = mesh.displace(remeshed.base, remeshed.image, extra_subdivisions=1)
+    assert finer.faces.shape[0] == 4 * remeshed.base.faces.shape[0]
+    assert np.all(np.isfinite(np.asarray(finer.vertices)))
+
+
+def test_casters_agree(synthetic, remeshed):
+    verts, faces = np.asarray(synthetic.scan.vertices), np.asarray(synthetic.scan.faces)
+    base = np.asarray(remeshed.base.vertices)[::7]
+    normals = np.asarray(mesh.vertex_normals(remeshed.base.vertices, remeshed.base.faces))[::7]
+    exact = mesh.cast(mesh.ScanIndex(verts, faces, "kdtree"), base, normals, 0.5)
+    assert exact.hit.mean() > 0.99
+    if mesh.has_embree():
+        fast = mesh.cast(mesh.ScanIndex(verts, faces, "embree"), base, normals, 0.5)
+        np.testing.assert_array_equal(fast.hit, exact.hit)
+        np.testing.assert_allclose(fast.distance, exact.distance, atol=1e-4)
+
+
+def test_two_ict_identities_correspond_pixel_for_pixel():
+    data = np.load(SHARED_DATA / "ict_facekit" / "ict_face_area.npz")
+    neutral, faces = data["vertices"].astype(np.float64), data["faces"]
+    deltas = data["identity_deltas"].astype(np.float64)
+    rng = np.random.default_rng(0)
+    results, people = [], []
+    for _ in range(2):
+        person = neutral + np.tensordot(rng.normal(size=len(deltas)), deltas, axes=1)
+        marks = mesh.ict_landmarks(person)
+        results.append(
+            mesh.remesh(person, faces, marks, image_size=64, n_linear=2, n_loop=1, n_smooth=1)
+        )
+        people.append(person)
+    a, b = results
+    # Levels of two faces mix (the paper's aging): coarse shape of one, finer levels of the other.
+    mixed = mesh.reconstruct(a.markers, (*a.offsets[:1], *b.offsets[1:]), a.hierarchy())
+    assert mixed.shape == a.control.shape and np.all(np.isfinite(np.asarray(mixed)))
+    np.testing.assert_array_equal(np.asarray(a.base.faces), np.asarray(b.base.faces))
+    np.testing.assert_array_equal(np.asarray(a.base.uv), np.asarray(b.base.uv))
+    assert not np.allclose(a.base.vertices, b.base.vertices, atol=0.1)
+    # The same base vertex (= the same pixel) lands on the same place of the ICT face.
+    where = []
+    for result, person in zip(results, people, strict=True):
+        _, nearest = cKDTree(person).query(np.asarray(result.base.vertices))
+        where.append(neutral[nearest])
+    gap = np.linalg.norm(where[0] - where[1], axis=1)
+    spacing = mesh.mean_edge_length(neutral, faces)
+    print(f"ICT correspondence: median {np.median(gap) * 10:.2f} mm, ICT edge {spacing * 10:.2f}")
+    assert np.median(gap) < 2 * spacing and np.percentile(gap, 90) < 5 * spacing
+
+
+def test_lee_perry_smith_head_remeshes_without_nan(request):
+    head = io.read_mesh(SHARED_DATA / "meshes" / "lee_perry_smith_head.obj")
+    marks = io.read_landmarks(request.path.parent / "data" / "lee_perry_smith_landmarks.json")
+    result = mesh.remesh(head.vertices, head.faces, marks, image_size=128, **SCHEDULE)
+    rates = np.asarray(result.hit_rate)
+    print(f"Lee Perry-Smith hit rates per level: {np.round(rates, 4)}")
+    for leaf in jax.tree.leaves(result):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+    assert rates[-1] > 0.95 and rates.min() > 0.9
+
+
+@pytest.mark.usefixtures("unchecked")
+def test_bad_scans_and_landmarks(synthetic):
+    verts, faces = np.asarray(synthetic.scan.vertices), np.asarray(synthetic.scan.faces)
+    marks = dict(synthetic.landmarks)
+    with pytest.raises(ValueError, match="no faces"):
+        mesh.remesh(verts, np.zeros((0, 3), np.int64), marks)
+    with pytest.raises(ValueError, match="non-manifold"):
+        mesh.remesh(verts, np.concatenate([faces, faces[:5]]), marks)
+    with pytest.raises(ValueError, match="far from the scan"):
+        far = {**marks, "nose_tip": tuple(float(c) for c in verts[marks["nose_tip"]] + 5.0)}
+        mesh.remesh(verts, faces, far)
+    with pytest.raises(TypeError, match="floating"):
+        mesh.remesh(verts.astype(np.int64), faces, marks)
+    with pytest.raises(ValueError, match="image_size"):
+        mesh.remesh(verts, faces, marks, image_size=2)
+    with pytest.raises(ValueError, match="no uv"):
+        mesh.displace(mesh.Mesh(jnp.zeros((3, 3)), jnp.array([[0, 1, 2]])), np.zeros((4, 4)))
