@@ -43,8 +43,15 @@ def _library_args(p: argparse.ArgumentParser) -> None:
 def register(sub: argparse._SubParsersAction) -> None:
     quilt = sub.add_parser("quilt", help="face synthesis and editing by non-stationary quilting")
     actions = quilt.add_subparsers(dest="quilt_command", required=True, metavar="ACTION")
+    add_actions(actions)
 
-    sample = actions.add_parser("sample", help="synthesise new faces from aligned training faces")
+
+def add_actions(actions: argparse._SubParsersAction, sample_name: str = "sample") -> None:
+    """Add the quilting actions (sample, inpaint, edit, restyle) to a group of sub-commands, so
+    another command (e.g. ``jface faces``) can carry them; ``sample_name`` renames ``sample``."""
+    sample = actions.add_parser(
+        sample_name, help="synthesise new faces from aligned training faces"
+    )
     _library_args(sample)
     sample.add_argument("--n", type=int, default=16, help="number of faces (default 16)")
     sample.add_argument("--global", dest="global_model", choices=("pca", "mean"), default="pca")
