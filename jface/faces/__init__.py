@@ -42,10 +42,6 @@ from jface.faces._api import (
     transfer,
 )
 from jface.faces._bilinear import BilinearModel
-from jface.faces._em import EMResult
-from jface.faces._fa import FactorAnalyser, Posterior
-from jface.faces._mofa import MixtureOfFactorAnalysers, MixturePosterior
-from jface.faces._store import load_model, save_model
 from jface.faces._editing import (
     distinct_sources,
     guided_edit,
@@ -56,10 +52,14 @@ from jface.faces._editing import (
     target_distance,
     training_nn_distances,
 )
+from jface.faces._em import EMResult
+from jface.faces._fa import FactorAnalyser, Posterior
 from jface.faces._global import assign_components, inpaint_hypotheses, restyle, synthesize
+from jface.faces._mofa import MixtureOfFactorAnalysers, MixturePosterior
 from jface.faces._patches import Geometry, PatchLibrary, build_library, make_geometry
 from jface.faces._poisson import divergence, gradients, poisson_blend, poisson_solve
 from jface.faces._quilting import QuiltResult, quilt
+from jface.faces._store import load_model, save_model
 
 __all__ = [
     "BilinearModel",
