@@ -285,7 +285,7 @@ def test_cli_sample_inpaint_edit(lfw, tmp_path, capsys):
         io.write_png(folder / f"{i:03d}.png", lfw[i])
     common = ["--grid", "5", "--translations", "0", "--angles", "--seed", "1"]
     out = tmp_path / "sample"
-    assert main(["quilt", "sample", str(folder), "--n", "2", "--out", str(out), *common]) == 0
+    assert main(["faces", "synth", str(folder), "--n", "2", "--out", str(out), *common]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert len(summary["nn_distance"]) == 2 and all(d > 0 for d in summary["nn_distance"])
     assert io.read_image(out / "face_001.png").shape == (25, 25)
@@ -297,7 +297,7 @@ def test_cli_sample_inpaint_edit(lfw, tmp_path, capsys):
     face = folder / "039.png"
     args = ["--image", str(face), "--mask", str(tmp_path / "mask.png"), "--n", "2", *common]
     out = tmp_path / "inpaint"
-    assert main(["quilt", "inpaint", str(folder), "--out", str(out), *args]) == 0
+    assert main(["faces", "inpaint", str(folder), "--out", str(out), *args]) == 0
     inpainted = io.read_image(out / "inpainted_001.png")
     np.testing.assert_array_equal(inpainted[8:], io.read_image(face)[8:])
 
@@ -306,13 +306,13 @@ def test_cli_sample_inpaint_edit(lfw, tmp_path, capsys):
     io.write_png(tmp_path / "painted.png", painted)
     out = tmp_path / "edit"
     edit = ["--image", str(face), "--painted", str(tmp_path / "painted.png"), *common]
-    assert main(["quilt", "edit", str(folder), "--out", str(out), *edit]) == 0
+    assert main(["faces", "edit", str(folder), "--out", str(out), *edit]) == 0
     assert io.read_image(out / "edited.png").shape == (25, 25)
 
     io.write_png(tmp_path / "small.png", lfw[0, :20])
     capsys.readouterr()
     bad = ["--image", str(tmp_path / "small.png"), "--mask", str(tmp_path / "mask.png")]
-    assert main(["quilt", "inpaint", str(folder), "--out", str(out), *bad, *common]) == 2
+    assert main(["faces", "inpaint", str(folder), "--out", str(out), *bad, *common]) == 2
     assert "--image must have the training faces' shape" in capsys.readouterr().err
 
 
@@ -375,8 +375,8 @@ def test_cli_with_a_model_file(lfw, factor_models, tmp_path):
     assert (
         main(
             [
-                "quilt",
-                "sample",
+                "faces",
+                "synth",
                 str(folder),
                 "--model",
                 str(model),

@@ -21,7 +21,6 @@ COMMAND_MODULES = (
     "jface.cli._detail",
     "jface.cli._mesh",
     "jface.cli._faces",
-    "jface.cli._quilt",
     "jface.cli._wrinkles",
 )
 

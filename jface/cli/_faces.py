@@ -13,6 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jface import faces, raster
+from jface.cli import _quilt as quilting
 from jface.io import load_arrays, provenance, read_image, write_png
 
 
@@ -40,6 +41,7 @@ def register(subparsers) -> None:
     sample.add_argument("--noise", action="store_true", help="add the per-pixel noise term")
     sample.add_argument("--out", required=True, help="output folder (PNGs and grid.png)")
     sample.set_defaults(run=_sample)
+    quilting.add_actions(sub, sample_name="synth")
 
 
 def _read_faces(paths: list[str]) -> np.ndarray:
@@ -154,3 +156,4 @@ def demo(out_dir: Path, seed: int) -> None:
         f"faces: 8-factor analyser fitted to 120 renders (log-likelihood {ll[0]:.0f} → "
         f"{ll[-1]:.0f} nats/image); 16 samples in {grid_path}"
     )
+    quilting.demo(out_dir, seed)

@@ -1,4 +1,5 @@
-"""``jface quilt sample|inpaint|edit``: face synthesis and editing by non-stationary quilting.
+"""``jface faces synth|inpaint|edit|restyle``: face synthesis and editing by non-stationary
+quilting (the actions are attached to ``jface faces`` by :mod:`jface.cli._faces`).
 
 The training set is a folder (or list) of aligned face images of one size. The global target
 is a sample of a trained factor analyser or mixture (``--model``, a file of
@@ -38,12 +39,6 @@ def _library_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-symmetry", action="store_true", help="no left/right source constraint")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output folder")
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    quilt = sub.add_parser("quilt", help="face synthesis and editing by non-stationary quilting")
-    actions = quilt.add_subparsers(dest="quilt_command", required=True, metavar="ACTION")
-    add_actions(actions)
 
 
 def add_actions(actions: argparse._SubParsersAction, sample_name: str = "sample") -> None:
