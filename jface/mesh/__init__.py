@@ -35,6 +35,7 @@ from jface.mesh._synthetic import (
     canonical_face,
     detail_field,
     known_displacement,
+    smooth_offset,
     synthetic_scan,
 )
 from jface.mesh._template import (
@@ -78,6 +79,7 @@ __all__ = [
     "reconstruct",
     "remesh",
     "sample_image",
+    "smooth_offset",
     "subdivide",
     "subdivide_topology",
     "synthetic_scan",

@@ -129,10 +129,23 @@ def synthetic_scan(
     return SyntheticScan(Mesh(vertices, faces_j, None), smooth, field, landmarks)
 
 
+def _cast_base(base: Mesh, vertices: np.ndarray, faces: np.ndarray):
+    """Rays from the base vertices along the base normals onto a mesh, reaching 5% of its
+    bounding-box diagonal (far beyond any fine detail; a whole-diagonal reach makes the exact
+    caster search the whole mesh for the rays that leave the border)."""
+    from jface.mesh._raycast import ScanIndex, cast
+
+    points = np.asarray(base.vertices, dtype=np.float64)
+    normals = np.asarray(vertex_normals(base.vertices, jnp.asarray(base.faces)), dtype=np.float64)
+    reach = 0.05 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+    return points, normals, cast(ScanIndex(vertices, faces), points, normals, reach)
+
+
 def known_displacement(synthetic: SyntheticScan, base: Mesh) -> Float[Array, " v"]:
     """The detail a synthetic scan carries where each base vertex's normal meets it: the scan's
     per-vertex displacement interpolated over the scan triangle that the ray hits (0 where it
-    misses). The ground truth that :func:`~jface.mesh.remesh` should recover, per base vertex.
+    misses). What :func:`~jface.mesh.remesh` should recover, per base vertex, up to the base
+    mesh's own departure from the smooth face (:func:`smooth_offset`).
 
     Args:
         synthetic: from :func:`synthetic_scan`.
@@ -140,14 +153,9 @@ def known_displacement(synthetic: SyntheticScan, base: Mesh) -> Float[Array, " v
     """
     import trimesh
 
-    from jface.mesh._raycast import ScanIndex, cast
-
     verts = np.asarray(synthetic.scan.vertices, dtype=np.float64)
     faces = np.asarray(synthetic.scan.faces)
-    points = np.asarray(base.vertices, dtype=np.float64)
-    normals = np.asarray(vertex_normals(base.vertices, jnp.asarray(base.faces)), dtype=np.float64)
-    reach = float(np.linalg.norm(verts.max(0) - verts.min(0)))
-    hits = cast(ScanIndex(verts, faces), points, normals, reach)
+    points, normals, hits = _cast_base(base, verts, faces)
     tri = faces[np.maximum(hits.triangle, 0)]
     bary = trimesh.triangles.points_to_barycentric(
         verts[tri], points + hits.distance[:, None] * normals
@@ -155,3 +163,17 @@ def known_displacement(synthetic: SyntheticScan, base: Mesh) -> Float[Array, " v
     per_vertex = np.asarray(synthetic.detail(synthetic.smooth), dtype=np.float64)
     known = np.where(hits.hit, np.sum(bary * per_vertex[tri], axis=1), 0.0)
     return jnp.asarray(known, dtype=jnp.float32)
+
+
+def smooth_offset(synthetic: SyntheticScan, base: Mesh) -> Float[Array, " v"]:
+    """Signed distance from each base vertex along its normal to the smooth face the synthetic
+    detail was added to (0 where the ray misses): how far the base mesh departs from that
+    surface. A displacement measured from the base is ``known_displacement + smooth_offset``.
+
+    Args:
+        synthetic: from :func:`synthetic_scan`.
+        base: the base mesh of a remeshing of ``synthetic.scan``.
+    """
+    smooth = np.asarray(synthetic.smooth, dtype=np.float64)
+    _, _, hits = _cast_base(base, smooth, np.asarray(synthetic.scan.faces))
+    return jnp.asarray(np.where(hits.hit, hits.distance, 0.0), dtype=jnp.float32)
