@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
+from PIL import Image
 
 from jface import io, mesh
 
@@ -213,6 +214,11 @@ def test_cli_remesh_and_displace(tmp_path, capsys):
     assert "hit rates" in capsys.readouterr().out
     names = {p.name for p in out.iterdir()}
     assert {"base.obj", "displacement.exr", "displacement.png", "base_shaded.png"} <= names
+    for name in ("base_shaded.png", "detailed_shaded.png"):  # 3-D views: frontal and turned
+        view = np.asarray(Image.open(out / name), dtype=np.float64)
+        assert view.shape == (64, 2 * 64 + 4)
+        assert view[0, 0] == 0 and view[-1, -1] == 0  # background around the face
+        assert view[32, 32] > 0 and view[32, 68 + 32] > 0  # the lit face in the middle of both
     exr = io.read_exr(out / "displacement.exr")
     assert exr.metadata["source"] == "face.obj" and exr.metadata["schedule"] == [1, 1, 1]
     assert np.all(np.isfinite(exr.channels["Y"]))
