@@ -156,8 +156,8 @@ def remesh(
         fit: Gauss–Newton iterations of a least-squares fit of the control mesh to the scan
             (Lee et al. 2000) before smoothing; 0 (default) is the paper's method, where the
             control mesh interpolates the scan at its vertices, so the base mesh picks up
-            detail aliased at those vertices and the shrinkage of Loop smoothing. 1–2
-            iterations remove both from the displacement image.
+            detail aliased at those vertices and the shrinkage of Loop smoothing as a smooth
+            offset from the scan's smooth shape; 2–3 iterations reduce it (docs/mesh.md).
         progress: show a progress bar over the levels.
 
     Returns:
