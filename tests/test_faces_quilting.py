@@ -271,15 +271,21 @@ def test_same_key_same_face_and_vmap(library, pca_target):
 
 
 def test_novel_but_close_to_target(lfw, library, pca_target):
+    """§5: new faces, not copies. The RMS distance of a result to its nearest training face is
+    inherited from the global target (the target carries identity, the patches detail): on
+    these 25×25 faces a low-rank sample lies at ~0.6–1.1 of the median training
+    nearest-neighbour distance, and so do the results. Asserted: every result is farther from
+    every training face than the closest training pair, keeps at least 90% of its target's
+    distance to the training set (the patches do not collapse onto one training face), and is
+    much closer to its target than to any training face."""
     nn = np.asarray(faces.training_nn_distances(lfw))
+    _, target_nn = faces.nearest_training(pca_target, lfw)
     keys = jax.random.split(jax.random.key(3), 3)
     out = jax.vmap(lambda k: faces.quilt(k, library, pca_target))(keys)
     for image in out.image:
         _, dist = faces.nearest_training(image, lfw)
-        # farther from every training image than the closest training images are from each other
         assert float(dist) > nn.min()
-        assert float(faces.novelty(image, lfw)) > nn.min() / np.median(nn)
-        # while closer to its global target than to any training face
+        assert float(dist) > 0.9 * float(target_nn)
         assert float(faces.target_distance(image, pca_target)) < 0.8 * float(dist)
     # the local-only model (λ = 0) ignores the target
     local = jax.vmap(lambda k: faces.quilt(k, library, pca_target, lam=0.0))(keys)
