@@ -352,6 +352,22 @@ def test_guided_edit_changes_only_the_painted_region(lfw, library, unchecked):
         faces.guided_edit(jax.random.key(7), library, face, face)
     with pytest.raises(ValueError, match="mask must have shape"):
         faces.inpaint(jax.random.key(7), library, face, np.ones((5, 5), bool), face)
+    with pytest.raises(ValueError, match="mask is empty"):
+        faces.inpaint(jax.random.key(7), library, face, np.zeros((25, 25), bool), face)
+    with pytest.raises(ValueError, match="selects every pixel"):
+        faces.inpaint(jax.random.key(7), library, face, np.ones((25, 25), bool), face)
+
+
+def test_ict_render_pairs_for_restyling():
+    """The example's Fig. 12 pairs: the same identities, poses and noise, neutral and smiling;
+    the smile changes the lower face, not the forehead."""
+    from jface.cli._faces import face_renders
+
+    neutral, smiling = face_renders(3, 2, 32), face_renders(3, 2, 32, smile=1.0)
+    np.testing.assert_array_equal(neutral, face_renders(3, 2, 32))
+    change = np.abs(smiling - neutral).mean(axis=(0, 2))
+    assert change[16:23].mean() > 0.05
+    assert change[16:23].mean() > 10 * change[:6].mean()
 
 
 # --- command line ---------------------------------------------------------------------------
