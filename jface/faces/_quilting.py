@@ -144,19 +144,30 @@ def _quilt(
     dtype = patches.dtype
     n_entries = patches.shape[2]
     flat = patches.reshape(rows * cols, n_entries, -1)  # (R Q, P, D): one matrix per position
+    norms = library.norms.reshape(rows * cols, n_entries)
+    seam_norms = library.seam_norms.reshape(rows * cols, n_entries)
+    n_aug = library.shifts.shape[0]  # entries of image i: [i A, (i + 1) A)
     zero = jnp.zeros((), jnp.int32)
 
-    def position_cost(t, wk, q, tq):
-        # Σ wk (P - q)² + λ Σ (P - t)² = Σ wk P² + λ Σ P² - 2 P·(wk q + λ t) + const: one
-        # mat-vec over the library (a mat-mat for a vmapped batch of faces); the quadratic
-        # terms come with the library, except over the arbitrary known pixels of a fill.
-        lib = flat[t]
-        r, c = t // cols, t % cols
-        # in a synthesis the known pixels are exactly the seams with earlier patches
-        seam = (lib * lib) @ wk if fill else library.seam_norms[r, c]
-        quad = lam * library.norms[r, c] + seam
+    def entries_cost(t, start, count, wk, q, tq):
+        # Σ wk (P - q)² + λ Σ (P - t)² = Σ wk P² + λ Σ P² - 2 P·(wk q + λ t) + const over the
+        # library entries [start, start + count): one mat-vec (a mat-mat for a vmapped batch of
+        # faces); the quadratic terms come with the library, except over the arbitrary known
+        # pixels of a fill (in a synthesis the known pixels are exactly the seams)
+        def rows_of(x):
+            return jax.lax.dynamic_slice_in_dim(x[t], start, count)
+
+        lib = rows_of(flat)
+        seam = (lib * lib) @ wk if fill else rows_of(seam_norms)
         const = jnp.sum(wk * q * q) + lam * jnp.sum(tq * tq)
-        return quad - 2 * (lib @ (wk * q + lam * tq)) + const
+        return lam * rows_of(norms) + seam - 2 * (lib @ (wk * q + lam * tq)) + const
+
+    def mirrored_cost(t, mirror, wk, q, tq):
+        # the symmetry allows only the mirrored patch's training image: score its entries only
+        own = entries_cost(t, mirror * n_aug, n_aug, wk, q, tq)
+        return jax.lax.dynamic_update_slice(
+            jnp.full(n_entries, jnp.inf, dtype), own, (mirror * n_aug,)
+        )
 
     def step(state, t):
         canvas, known, chosen_src, ids, errors = state
@@ -172,11 +183,17 @@ def _quilt(
         if fill:  # most positions lie outside an inpainted region: skip their library pass
             cost = jax.lax.cond(
                 go,
-                lambda: position_cost(t, wk, q, tq),
+                lambda: entries_cost(t, 0, n_entries, wk, q, tq),
                 lambda: jnp.zeros(n_entries, dtype),
             )
+        elif symmetric:  # right of the centre the mirrored position is always filled
+            cost = jax.lax.cond(
+                2 * c > cols - 1,
+                lambda: mirrored_cost(t, chosen_src[r, cols - 1 - c], wk, q, tq),
+                lambda: entries_cost(t, 0, n_entries, wk, q, tq),
+            )
         else:
-            cost = position_cost(t, wk, q, tq)
+            cost = entries_cost(t, 0, n_entries, wk, q, tq)
 
         ok = allowed
         if symmetric:
