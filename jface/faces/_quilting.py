@@ -19,8 +19,9 @@ patches to reach 1–2 s per face. Here the cost expands as ``Σ (w + λ) P² - 
 const, with ``w`` the known pixels, ``q`` the canvas and ``t`` the target: the quadratic terms
 (``Σ P²`` and its sum over the seams with earlier patches) are computed once with the library,
 so each position costs one matrix–vector product over its library, and ``vmap`` over keys turns
-those into matrix–matrix products that read the library once for the whole batch. The synthesis
-is one jitted ``lax.scan`` over the grid.
+those into matrix–matrix products that read the library once for the whole batch. Right of the
+centre column the symmetry allows one training image, so only its entries are scored. The
+synthesis is one jitted ``lax.scan`` over the grid.
 """
 
 from __future__ import annotations
