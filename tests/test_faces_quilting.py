@@ -133,6 +133,14 @@ def test_library_layout(lfw, library):
     np.testing.assert_array_equal(library.sources, np.repeat(np.arange(100), n_aug))
     # entry i * n_aug is image i's own patch, unmoved
     np.testing.assert_allclose(library.patches[2, 3, 7 * n_aug, :, :, 0], lfw[7, 10:16, 15:21])
+    # quadratic cost terms: Σ P² and Σ P² over the overlaps with the left and upper neighbours
+    p64 = np.asarray(library.patches, np.float64)[..., 0]
+    np.testing.assert_allclose(library.norms, (p64**2).sum(axis=(-2, -1)), rtol=1e-5)
+    seam = np.zeros((6, 6), bool)
+    seam[0], seam[:, 0] = True, True  # an inner position overlaps its neighbours by 1 px
+    inner = (p64[2, 3][:, seam] ** 2).sum(1)
+    np.testing.assert_allclose(library.seam_norms[2, 3], inner, rtol=1e-5)
+    assert float(jnp.max(jnp.abs(library.seam_norms[0, 0]))) == 0.0
 
 
 def test_library_rgb_and_bad_input(lfw, unchecked):
@@ -184,6 +192,73 @@ def test_patches_from_their_own_position_and_symmetric(lfw, exact_library, pca_t
     assert smap.shape == (25, 25) and smap[0, 0] == src[0, 0] and smap[-1, -1] == src[-1, -1]
 
 
+def replay_costs(library, result, target, image=None, region=None, lam=1.0):
+    """Float64 numpy reference of the quilting cost (§2.2), replayed along the patches jface
+    chose: at each synthesised position, the costs of the whole library given the canvas so far
+    (masked SSD to the known pixels + λ SSD to the target, symmetry restriction applied) and the
+    chosen entry. Returns ``[(costs, chosen), ...]`` in raster order."""
+    g = library.geometry
+    rows, cols = g.grid
+    (ph, pw), (sy, sx) = g.patch, g.step
+    hc, wc = g.canvas
+    patches = np.asarray(library.patches, np.float64)
+    sources = np.asarray(library.sources)
+    ids = np.asarray(result.ids)
+
+    def pad(x):
+        x = np.asarray(x, np.float64)
+        return np.pad(x, ((0, hc - x.shape[0]), (0, wc - x.shape[1])), "symmetric")[..., None]
+
+    tgt = pad(target)
+    if region is None:
+        canvas, known = np.zeros((hc, wc, 1)), np.zeros((hc, wc), bool)
+    else:
+        hole = pad(region)[..., 0] > 0
+        canvas, known = np.where(hole[..., None], tgt, pad(image)), ~hole
+    observed = known.copy()
+    chosen_src = -np.ones((rows, cols), int)
+    out = []
+    for r in range(rows):
+        for c in range(cols):
+            if ids[r, c] < 0:
+                continue
+            y, x = r * sy, c * sx
+            lib = patches[r, c]
+            win, m = canvas[y : y + ph, x : x + pw], known[y : y + ph, x : x + pw, None]
+            cost = (((lib - win) ** 2) * m).sum(axis=(1, 2, 3))
+            cost += lam * ((lib - tgt[y : y + ph, x : x + pw]) ** 2).sum(axis=(1, 2, 3))
+            mirror = chosen_src[r, cols - 1 - c]
+            if mirror >= 0:
+                cost = np.where(sources == mirror, cost, np.inf)
+            out.append((cost, ids[r, c]))
+            chosen_src[r, c] = sources[ids[r, c]]
+            o = observed[y : y + ph, x : x + pw, None]
+            canvas[y : y + ph, x : x + pw] = np.where(o, win, lib[ids[r, c]])
+            known[y : y + ph, x : x + pw] = True
+    return out
+
+
+def test_choices_match_a_numpy_reference_of_the_cost(lfw, library, pca_target):
+    """Every chosen patch is among the N cheapest under an independent float64 cost, for whole
+    faces (library quadratic terms) and for an inpainted region (arbitrary known pixels)."""
+    n_best = 11  # the default for 2,700 patches: the compiled scans are shared with other tests
+    mask = np.zeros((25, 25), bool)
+    mask[6:15, 4:20] = True
+    runs = [
+        (faces.quilt(jax.random.key(12), library, pca_target), {}),
+        (
+            faces.inpaint(jax.random.key(13), library, lfw[50], mask, pca_target),
+            {"image": lfw[50], "region": mask},
+        ),
+    ]
+    for result, extra in runs:
+        steps = replay_costs(library, result, pca_target, **extra)
+        assert len(steps) == int((np.asarray(result.ids) >= 0).sum()) > 4
+        for cost, chosen in steps:
+            kth = np.partition(cost, n_best - 1)[n_best - 1]
+            assert cost[chosen] <= kth + 1e-4 * max(1.0, abs(kth))
+
+
 def test_same_key_same_face_and_vmap(library, pca_target):
     keys = jax.random.split(jax.random.key(2), 3)
     batch = jax.vmap(lambda k: faces.quilt(k, library, pca_target))(keys)
@@ -196,15 +271,21 @@ def test_same_key_same_face_and_vmap(library, pca_target):
 
 
 def test_novel_but_close_to_target(lfw, library, pca_target):
+    """§5: new faces, not copies. The RMS distance of a result to its nearest training face is
+    inherited from the global target (the target carries identity, the patches detail): on
+    these 25×25 faces a low-rank sample lies at ~0.6–1.1 of the median training
+    nearest-neighbour distance, and so do the results. Asserted: every result is farther from
+    every training face than the closest training pair, keeps at least 90% of its target's
+    distance to the training set (the patches do not collapse onto one training face), and is
+    much closer to its target than to any training face."""
     nn = np.asarray(faces.training_nn_distances(lfw))
+    _, target_nn = faces.nearest_training(pca_target, lfw)
     keys = jax.random.split(jax.random.key(3), 3)
     out = jax.vmap(lambda k: faces.quilt(k, library, pca_target))(keys)
     for image in out.image:
         _, dist = faces.nearest_training(image, lfw)
-        # farther from every training image than the closest training images are from each other
         assert float(dist) > nn.min()
-        assert float(faces.novelty(image, lfw)) > nn.min() / np.median(nn)
-        # while closer to its global target than to any training face
+        assert float(dist) > 0.9 * float(target_nn)
         assert float(faces.target_distance(image, pca_target)) < 0.8 * float(dist)
     # the local-only model (λ = 0) ignores the target
     local = jax.vmap(lambda k: faces.quilt(k, library, pca_target, lam=0.0))(keys)
@@ -271,6 +352,22 @@ def test_guided_edit_changes_only_the_painted_region(lfw, library, unchecked):
         faces.guided_edit(jax.random.key(7), library, face, face)
     with pytest.raises(ValueError, match="mask must have shape"):
         faces.inpaint(jax.random.key(7), library, face, np.ones((5, 5), bool), face)
+    with pytest.raises(ValueError, match="mask is empty"):
+        faces.inpaint(jax.random.key(7), library, face, np.zeros((25, 25), bool), face)
+    with pytest.raises(ValueError, match="selects every pixel"):
+        faces.inpaint(jax.random.key(7), library, face, np.ones((25, 25), bool), face)
+
+
+def test_ict_render_pairs_for_restyling():
+    """The example's Fig. 12 pairs: the same identities, poses and noise, neutral and smiling;
+    the smile changes the lower face, not the forehead."""
+    from jface.cli._faces import face_renders
+
+    neutral, smiling = face_renders(3, 2, 32), face_renders(3, 2, 32, smile=1.0)
+    np.testing.assert_array_equal(neutral, face_renders(3, 2, 32))
+    change = np.abs(smiling - neutral).mean(axis=(0, 2))
+    assert change[16:23].mean() > 0.05
+    assert change[16:23].mean() > 10 * change[:6].mean()
 
 
 # --- command line ---------------------------------------------------------------------------

@@ -122,12 +122,14 @@ def _sample(args: argparse.Namespace) -> None:
 # --- demo ------------------------------------------------------------------------------------
 
 
-def face_renders(key_seed: int, n: int, size: int = 32) -> np.ndarray:
-    """``n`` frontal renders of random identities of the built-in ICT-FaceKit face model."""
+def face_renders(key_seed: int, n: int, size: int = 32, *, smile: float = 0.0) -> np.ndarray:
+    """``n`` frontal renders of random identities of the built-in ICT-FaceKit face model;
+    ``smile`` adds the model's smile expression with that weight (the same seed gives the same
+    identities, poses and noise, so two calls make neutral/smiling pairs)."""
     source = resources.files("jface") / "data" / "ict_face_small.npz"
     with resources.as_file(source) as path:
         mesh, _ = load_arrays(path, kind="FaceMeshModel")
-    verts = mesh["vertices"].astype(np.float64)
+    verts = mesh["vertices"].astype(np.float64) + smile * mesh["smile_delta"].astype(np.float64)
     modes = mesh["identity_deltas"].astype(np.float64).reshape(len(mesh["identity_deltas"]), -1)
     rng = np.random.default_rng(key_seed)
     center, extent = np.array([0.0, -1.0, 5.0]), 16.0

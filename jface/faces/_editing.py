@@ -93,15 +93,13 @@ def inpaint(
     canvas = jnp.where(region[..., None], target, image)
     out = _quilt(
         key,
-        library.patches,
-        library.sources,
+        library,
         to_canvas(target, g),
         to_canvas(canvas, g),
         ~hole,
         active,
         entries,
         lam,
-        geometry=g,
         n_best=n_best,
         symmetric=bool(symmetric),
         blend=bool(blend),

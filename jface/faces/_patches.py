@@ -65,6 +65,10 @@ class PatchLibrary(eqx.Module):
             ``e`` comes from training image ``sources[e]`` under augmentation ``e % n_augment``
             (entry ``i * n_augment`` is image ``i``'s own patch, unmoved).
         sources: ``(P,)`` source training image of each entry (the same at every position).
+        norms: ``(G_rows, G_cols, P)`` squared norm ``Σ P²`` of every patch, and
+        seam_norms: ``(G_rows, G_cols, P)`` the same over the pixels that the patches before it in
+            raster order cover (its overlaps with the left and upper neighbours): the quadratic
+            terms of the quilting cost, computed once with the library (§4.1).
         shifts: ``(n_augment, 3)`` the augmentations ``(dy, dx, angle in degrees)``.
         geometry: the grid layout (static).
         n_images: number of training images (static).
@@ -74,6 +78,8 @@ class PatchLibrary(eqx.Module):
 
     patches: Float[Array, "R Q P ph pw C"]
     sources: Int[Array, " P"]
+    norms: Float[Array, "R Q P"]
+    seam_norms: Float[Array, "R Q P"]
     shifts: Float[Array, "A 3"]
     geometry: Geometry = eqx.field(static=True)
     n_images: int = eqx.field(static=True)
@@ -158,6 +164,21 @@ def make_geometry(
         patch=(rows[0], cols[0]),
         overlap=(rows[1], cols[1]),
     )
+
+
+def seams(geometry: Geometry) -> np.ndarray:
+    """``(R, Q, ph, pw)`` boolean: the pixels of each grid window that the patches before it in
+    raster order cover (its overlaps with the left and upper neighbours)."""
+    rows, cols = geometry.grid
+    ph, pw = geometry.patch
+    covered = np.zeros(geometry.canvas, bool)
+    out = np.zeros((rows, cols, ph, pw), bool)
+    for r in range(rows):
+        for c in range(cols):
+            y0, x0 = geometry.origin(r, c)
+            out[r, c] = covered[y0 : y0 + ph, x0 : x0 + pw]
+            covered[y0 : y0 + ph, x0 : x0 + pw] = True
+    return out
 
 
 def to_canvas(image: Array, geometry: Geometry) -> Array:
@@ -246,6 +267,12 @@ def _extract(images: Array, shifts: Array, geometry: Geometry) -> Array:
     return flat.reshape(rows, cols, *flat.shape[1:]).astype(dtype)
 
 
+@jax.jit
+def _norms(patches: Array, seam: Array) -> tuple[Array, Array]:
+    squares = jnp.sum(patches * patches, axis=-1)  # over channels: (R, Q, P, ph, pw)
+    return jnp.sum(squares, axis=(-2, -1)), jnp.einsum("rqpyx,rqyx->rqp", squares, seam)
+
+
 def build_library(
     images: ArrayLike,
     grid: int | tuple[int, int] = GRID,
@@ -284,9 +311,12 @@ def build_library(
     padded = jax.vmap(lambda im: to_canvas(im, geometry))(arr)
     patches = _extract(padded, jnp.asarray(shifts, arr.dtype), geometry)
     sources = jnp.repeat(jnp.arange(arr.shape[0], dtype=jnp.int32), shifts.shape[0])
+    norms, seam_norms = _norms(patches, jnp.asarray(seams(geometry), arr.dtype))
     return PatchLibrary(
         patches=patches,
         sources=sources,
+        norms=norms,
+        seam_norms=seam_norms,
         shifts=jnp.asarray(shifts, arr.dtype),
         geometry=geometry,
         n_images=int(arr.shape[0]),

@@ -15,10 +15,13 @@ mixture component, §4). The x/y gradients of the chosen patches are averaged wh
 and the image is recovered by a Poisson solve whose Dirichlet boundary is the target (§4).
 
 §4.1 of the paper precomputes, over weeks, candidate lists for every pair of neighbouring
-patches to reach 1–2 s per face. Here the cost over a whole library is two matrix–vector
-products per position (``Σ_w P² - 2 Σ_w P·q``, with the weights ``w`` of known pixels and
-target), so nothing is precomputed: the synthesis is one jitted ``lax.scan`` over the grid and
-``vmap`` over keys makes many faces at once.
+patches to reach 1–2 s per face. Here the cost expands as ``Σ (w + λ) P² - 2 P·(w q + λ t)`` +
+const, with ``w`` the known pixels, ``q`` the canvas and ``t`` the target: the quadratic terms
+(``Σ P²`` and its sum over the seams with earlier patches) are computed once with the library,
+so each position costs one matrix–vector product over its library, and ``vmap`` over keys turns
+those into matrix–matrix products that read the library once for the whole batch. Right of the
+centre column the symmetry allows one training image, so only its entries are scored. The
+synthesis is one jitted ``lax.scan`` over the grid.
 """
 
 from __future__ import annotations
@@ -105,27 +108,6 @@ def assemble_gradients(
     return gx, gy
 
 
-@jax.custom_batching.custom_vmap
-def library_cost(
-    library: Float[Array, "P D"], weight: Float[Array, " D"], pull: Float[Array, " D"]
-) -> Float[Array, " P"]:
-    """``Σ_d w_d L_pd² - 2 Σ_d L_pd v_d`` for every library patch ``L_p``: the weighted SSD to a
-    reference up to a constant. One fused pass over the library (memory bound); under ``vmap``
-    over faces (library shared) it becomes two matrix products that read the library once for
-    the whole batch."""
-    return jnp.sum(library * (library * weight - 2 * pull), axis=1)
-
-
-@library_cost.def_vmap
-def _library_cost_batched(axis_size, in_batched, library, weight, pull):
-    lib_batched, w_batched, v_batched = in_batched
-    w = weight if w_batched else jnp.broadcast_to(weight, (axis_size, *weight.shape))
-    v = pull if v_batched else jnp.broadcast_to(pull, (axis_size, *pull.shape))
-    if lib_batched:
-        return jnp.sum(library * (library * w[:, None] - 2 * v[:, None]), axis=2), True
-    return ((library * library) @ w.T - 2 * (library @ v.T)).T, True
-
-
 def _poisson_channels(gx: Array, gy: Array, boundary: Array, region: Array | None) -> Array:
     def one(a, b, c):
         if region is None:
@@ -137,18 +119,16 @@ def _poisson_channels(gx: Array, gy: Array, boundary: Array, region: Array | Non
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("geometry", "n_best", "symmetric", "blend", "fill"))
+@functools.partial(jax.jit, static_argnames=("n_best", "symmetric", "blend", "fill"))
 def _quilt(
     key: PRNGKeyArray,
-    patches: Array,
-    sources: Array,
+    library: PatchLibrary,
     target: Array,
     canvas: Array,
     observed: Array,
     active: Array,
     allowed: Array,
     lam: Array,
-    geometry: Geometry,
     n_best: int,
     symmetric: bool,
     blend: bool,
@@ -157,27 +137,64 @@ def _quilt(
     """The raster-order scan on the canvas; see :func:`quilt`. ``fill`` is False for whole-image
     synthesis (Poisson on the rectangle, target as boundary) and True for filling the unobserved
     pixels of ``canvas`` (masked Poisson, observed pixels as boundary)."""
+    geometry = library.geometry
+    patches, sources = library.patches, library.sources
     rows, cols = geometry.grid
     ph, pw = geometry.patch
     n_ch = patches.shape[-1]
     dtype = patches.dtype
     n_entries = patches.shape[2]
+    flat = patches.reshape(rows * cols, n_entries, -1)  # (R Q, P, D): one matrix per position
+    norms = library.norms.reshape(rows * cols, n_entries)
+    seam_norms = library.seam_norms.reshape(rows * cols, n_entries)
+    n_aug = library.shifts.shape[0]  # entries of image i: [i A, (i + 1) A)
     zero = jnp.zeros((), jnp.int32)
+
+    def entries_cost(t, start, count, wk, q, tq):
+        # Σ wk (P - q)² + λ Σ (P - t)² = Σ wk P² + λ Σ P² - 2 P·(wk q + λ t) + const over the
+        # library entries [start, start + count): one mat-vec (a mat-mat for a vmapped batch of
+        # faces); the quadratic terms come with the library, except over the arbitrary known
+        # pixels of a fill (in a synthesis the known pixels are exactly the seams)
+        def rows_of(x):
+            return jax.lax.dynamic_slice_in_dim(x[t], start, count)
+
+        lib = rows_of(flat)
+        seam = (lib * lib) @ wk if fill else rows_of(seam_norms)
+        const = jnp.sum(wk * q * q) + lam * jnp.sum(tq * tq)
+        return lam * rows_of(norms) + seam - 2 * (lib @ (wk * q + lam * tq)) + const
+
+    def mirrored_cost(t, mirror, wk, q, tq):
+        # the symmetry allows only the mirrored patch's training image: score its entries only
+        own = entries_cost(t, mirror * n_aug, n_aug, wk, q, tq)
+        return jax.lax.dynamic_update_slice(
+            jnp.full(n_entries, jnp.inf, dtype), own, (mirror * n_aug,)
+        )
 
     def step(state, t):
         canvas, known, chosen_src, ids, errors = state
         r, c = t // cols, t % cols
         y0, x0 = geometry.origin(r, c)
-        library = patches[r, c].reshape(n_entries, -1)  # (P, D)
         window = jax.lax.dynamic_slice(canvas, (y0, x0, zero), (ph, pw, n_ch))
         kwin = jax.lax.dynamic_slice(known, (y0, x0), (ph, pw))
         owin = jax.lax.dynamic_slice(observed, (y0, x0), (ph, pw))
         twin = jax.lax.dynamic_slice(target, (y0, x0, zero), (ph, pw, n_ch))
         wk = jnp.broadcast_to(kwin[..., None], window.shape).astype(dtype).ravel()
         q, tq = window.ravel(), twin.ravel()
-        # cost = Σ (wk + λ) P² - 2 Σ P (wk q + λ t) + const  (two mat-vecs over the library)
-        cost = library_cost(library, wk + lam, wk * q + lam * tq)
-        cost = cost + jnp.sum(wk * q * q) + lam * jnp.sum(tq * tq)
+        go = active[r, c]
+        if fill:  # most positions lie outside an inpainted region: skip their library pass
+            cost = jax.lax.cond(
+                go,
+                lambda: entries_cost(t, 0, n_entries, wk, q, tq),
+                lambda: jnp.zeros(n_entries, dtype),
+            )
+        elif symmetric:  # right of the centre the mirrored position is always filled
+            cost = jax.lax.cond(
+                2 * c > cols - 1,
+                lambda: mirrored_cost(t, chosen_src[r, cols - 1 - c], wk, q, tq),
+                lambda: entries_cost(t, 0, n_entries, wk, q, tq),
+            )
+        else:
+            cost = entries_cost(t, 0, n_entries, wk, q, tq)
 
         ok = allowed
         if symmetric:
@@ -199,7 +216,6 @@ def _quilt(
         )
 
         patch = patches[r, c, choice]
-        go = active[r, c]
         placed = jnp.where(owin[..., None], window, patch)
         canvas = jax.lax.dynamic_update_slice(canvas, jnp.where(go, placed, window), (y0, x0, zero))
         known = jax.lax.dynamic_update_slice(known, kwin | go, (y0, x0))
@@ -327,15 +343,13 @@ def quilt(
     nothing = jnp.zeros(g.canvas, bool)
     out = _quilt(
         key,
-        library.patches,
-        library.sources,
+        library,
         canvas_target,
         jnp.zeros_like(canvas_target),
         nothing,
         jnp.ones(g.grid, bool),
         entries,
         lam,
-        geometry=g,
         n_best=n_best,
         symmetric=bool(symmetric),
         blend=bool(blend),
