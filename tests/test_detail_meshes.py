@@ -110,3 +110,79 @@ def test_bad_faces(unchecked, faces, key):
     wrong = detail.analyze_batch(jnp.stack([f.image[:32, :32] for f in faces]), grid=2, n_scales=3)
     with pytest.raises(ValueError, match="stats describe images of \\(32, 32\\)"):
         detail.interpolate_faces(key, faces, wrong, jnp.ones(3) / 3)
+
+
+@pytest.fixture(scope="module")
+def face_dirs(faces, tmp_path_factory):
+    """The faces written as ``jface remesh`` writes them."""
+    from jface import io
+    from jface.cli._apps import write_face
+
+    root = tmp_path_factory.mktemp("faces")
+    meta = io.provenance(schedule=list(faces[0].schedule))
+    for i, face in enumerate(faces):
+        write_face(root / f"face{i}", face, meta, "obj")
+    return [str(root / f"face{i}") for i in range(len(faces))]
+
+
+def test_cli_interpolate_age_add_detail(face_dirs, faces, tmp_path, capsys):
+    import json
+
+    from jface import io
+    from jface.cli import main
+    from jface.cli._apps import read_face
+
+    back = read_face(face_dirs[0])
+    np.testing.assert_allclose(back.base.vertices, faces[0].base.vertices, atol=1e-5)
+    np.testing.assert_allclose(back.offsets[-1], faces[0].offsets[-1], atol=1e-6)
+    small = ["--grid", "4", "--n-iter", "4"]
+    out = tmp_path / "mix"
+    assert (
+        main(["interpolate", *face_dirs, "--weights", "0.5,0.25,0.25", "--out", str(out), *small])
+        == 0
+    )
+    table = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert table["coerced"]["median_tile_std_error"] < table["average"]["median_tile_std_error"]
+    mixed = read_face(out / "coerced")  # outputs are face folders again
+    expected = 0.5 * faces[0].base.vertices + 0.25 * (
+        faces[1].base.vertices + faces[2].base.vertices
+    )
+    np.testing.assert_allclose(mixed.base.vertices, expected, atol=1e-4)
+    assert io.read_exr(out / "coerced" / "displacement.exr").metadata["weights"] == [
+        0.5,
+        0.25,
+        0.25,
+    ]
+
+    aged = tmp_path / "aged"
+    assert (
+        main(["age", face_dirs[0], face_dirs[1], "--levels", "2", "--out", str(aged), *small]) == 0
+    )
+    scores = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["methods"]
+    assert set(scores) == set(detail.METHODS)
+    result = read_face(aged / "aged")
+    np.testing.assert_allclose(result.markers, faces[0].markers, atol=1e-6)
+    np.testing.assert_allclose(result.offsets[2], faces[1].offsets[2], atol=1e-6)
+    assert (aged / "comparison.png").is_file() and (aged / "detail_only" / "base.obj").is_file()
+
+    stats = tmp_path / "old.stats.npz"
+    detail.save_stats(stats, detail.analyze(faces[1].image, grid=4))
+    added = tmp_path / "added"
+    assert (
+        main(["add-detail", face_dirs[2], "--stats", str(stats), "--out", str(added), *small]) == 0
+    )
+    errors = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["median_tile_std_error"]
+    assert errors["after"] < errors["before"]
+
+    # User errors: one line, exit 2.
+    assert main(["age", face_dirs[0], str(tmp_path), "--out", str(tmp_path / "x")]) == 2
+    assert "no base.obj" in capsys.readouterr().err
+    assert main(["add-detail", face_dirs[0], "--db", str(stats), "--out", str(tmp_path / "y")]) == 2
+    assert "--db needs --group" in capsys.readouterr().err
+    assert (
+        main(
+            ["interpolate", *face_dirs, "--weights", "1,1,1", "--out", str(tmp_path / "z"), *small]
+        )
+        == 2
+    )
+    assert "sum to 1" in capsys.readouterr().err
