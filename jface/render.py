@@ -197,3 +197,29 @@ def strip(panels: Sequence[ArrayLike], *, gap: int = 4) -> np.ndarray:
     for a in arrays[1:]:
         out += [spacer, a]
     return np.concatenate(out, axis=1)
+
+
+def comparison(images: Sequence[ArrayLike], errors: Sequence[ArrayLike]) -> np.ndarray:
+    """A method-comparison figure (as the paper's Fig. 10): shaded reliefs of the images side by
+    side, and below each its per-tile error map (0 dark blue … ≥ 1 yellow), stretched to the
+    image's size.
+
+    Args:
+        images: ``(H, W)`` maps, all of one shape.
+        errors: one ``(g, g)`` per-tile error map per image (e.g. the median over bands of
+            :func:`jface.detail.stats_error`).
+
+    Returns:
+        ``(2H + 4, W_total, 3)`` RGB image in [0, 1].
+    """
+    if len(images) != len(errors):
+        raise ValueError(f"need one error map per image: {len(images)} images, {len(errors)} maps")
+    shaded = strip([shade(image) for image in images])
+    coloured = []
+    for image, error in zip(images, errors, strict=True):
+        error = np.asarray(error, dtype=np.float64)
+        h, w = np.shape(image)
+        cell = np.ones((h // error.shape[0], w // error.shape[1]))
+        coloured.append(colormap(np.kron(error, cell), 0.0, 1.0))
+    top = np.repeat(shaded[..., None], 3, axis=-1)
+    return np.concatenate([top, np.ones((4, *top.shape[1:]), np.float32), strip(coloured)])

@@ -183,11 +183,9 @@ def _error(image, target: detail.DetailStats) -> float:
     return float(jnp.median(detail.stats_error(detail.analyze_like(image, target), target)))
 
 
-def _error_map(image, target: detail.DetailStats) -> np.ndarray:
-    """Per-tile error to the target (median over bands), coloured, at the image's size."""
-    error = np.median(np.asarray(detail.stats_error(detail.analyze_like(image, target), target)), 0)
-    cell = np.ones((image.shape[0] // error.shape[0], image.shape[1] // error.shape[1]))
-    return render.colormap(np.kron(error, cell), 0.0, 1.0)
+def _tile_errors(image, target: detail.DetailStats) -> np.ndarray:
+    """Per-tile error to the target statistics, median over bands."""
+    return np.median(np.asarray(detail.stats_error(detail.analyze_like(image, target), target)), 0)
 
 
 def _interpolate(args: argparse.Namespace) -> None:
@@ -273,10 +271,7 @@ def _age(args: argparse.Namespace) -> None:
     # Fig. 10: young, old, then the four methods; below, each one's per-tile error to the target
     # statistics (0 dark .. 100% yellow).
     images = [young.image, old.image, *results.values()]
-    shaded = render.strip([render.shade(image) for image in images])
-    errors = render.strip([_error_map(image, target) for image in images])
-    shaded = np.repeat(shaded[..., None], 3, axis=-1)
-    figure = np.concatenate([shaded, np.ones((4, *shaded.shape[1:]), np.float32), errors])
+    figure = render.comparison(images, [_tile_errors(image, target) for image in images])
     io.write_png(out / "comparison.png", figure, metadata=meta)
     io.write_json(out / "comparison.json", {**meta, "methods": scores})
     print(json.dumps({"out": str(out), "methods": scores}))
