@@ -1,5 +1,7 @@
 """Mesh-level applications (Golovinskiy et al. 2006 §3.2–§3.4) on remeshed ICT-FaceKit faces."""
 
+from pathlib import Path
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -186,3 +188,14 @@ def test_cli_interpolate_age_add_detail(face_dirs, faces, tmp_path, capsys):
         == 2
     )
     assert "sum to 1" in capsys.readouterr().err
+    from jface import io as jio
+
+    arrays, meta = jio.load_arrays(Path(face_dirs[1]) / "hierarchy.npz", kind="MeshHierarchy")
+    broken = tmp_path / "broken"
+    for name in ("base.obj", "displacement.exr"):
+        (broken / name).parent.mkdir(exist_ok=True)
+        (broken / name).write_bytes((Path(face_dirs[1]) / name).read_bytes())
+    meta.pop("schedule")
+    jio.save_arrays(broken / "hierarchy.npz", arrays, meta, kind="MeshHierarchy")
+    assert main(["age", face_dirs[0], str(broken), "--out", str(tmp_path / "w")]) == 2
+    assert "lacks the 'schedule' metadata field" in capsys.readouterr().err
