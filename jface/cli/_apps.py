@@ -20,6 +20,7 @@ from tqdm import tqdm
 from jface import detail, io, mesh, render
 from jface.cli._detail import _parse_group
 from jface.cli._mesh import _shaded_layout
+from jface.detail._meshes import check_faces
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -190,6 +191,7 @@ def _tile_errors(image, target: detail.DetailStats) -> np.ndarray:
 
 def _interpolate(args: argparse.Namespace) -> None:
     faces = [read_face(f) for f in tqdm(args.faces, desc="read faces", unit="face")]
+    check_faces(faces)  # one layout, before their images are stacked
     if args.weights:
         weights = [float(w) for w in args.weights.split(",")]
     else:
