@@ -9,6 +9,7 @@ own with a gain that makes its typical slope visible, and the shadings are summe
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import jax.numpy as jnp
 import numpy as np
@@ -172,3 +173,53 @@ def polar_glyphs(
         xs = np.clip(np.round(xs).astype(int), 0, size - 1)
         out[ys.ravel(), xs.ravel()] = colours[g]
     return out
+
+
+def strip(panels: Sequence[ArrayLike], *, gap: int = 4) -> np.ndarray:
+    """Panels of one height side by side on white, for figures that compare images.
+
+    Args:
+        panels: ``(H, W)`` grey or ``(H, W, 3)`` RGB images in [0, 1], all of one height.
+        gap: white pixels between panels.
+
+    Returns:
+        ``(H, W_total)`` grey when every panel is grey, else ``(H, W_total, 3)`` RGB.
+    """
+    arrays = [np.asarray(p, dtype=np.float32) for p in panels]
+    if not arrays:
+        raise ValueError("panels must hold at least one image, got none")
+    if len({a.shape[0] for a in arrays}) != 1:
+        raise ValueError(f"panels must share one height, got {[a.shape[0] for a in arrays]}")
+    if any(a.ndim == 3 for a in arrays):
+        arrays = [a if a.ndim == 3 else np.repeat(a[..., None], 3, axis=-1) for a in arrays]
+    spacer = np.ones((arrays[0].shape[0], gap, *arrays[0].shape[2:]), np.float32)
+    out = [arrays[0]]
+    for a in arrays[1:]:
+        out += [spacer, a]
+    return np.concatenate(out, axis=1)
+
+
+def comparison(images: Sequence[ArrayLike], errors: Sequence[ArrayLike]) -> np.ndarray:
+    """A method-comparison figure (as the paper's Fig. 10): shaded reliefs of the images side by
+    side, and below each its per-tile error map (0 dark blue … ≥ 1 yellow), stretched to the
+    image's size.
+
+    Args:
+        images: ``(H, W)`` maps, all of one shape.
+        errors: one ``(g, g)`` per-tile error map per image (e.g. the median over bands of
+            :func:`jface.detail.stats_error`).
+
+    Returns:
+        ``(2H + 4, W_total, 3)`` RGB image in [0, 1].
+    """
+    if len(images) != len(errors):
+        raise ValueError(f"need one error map per image: {len(images)} images, {len(errors)} maps")
+    shaded = strip([shade(image) for image in images])
+    coloured = []
+    for image, error in zip(images, errors, strict=True):
+        error = np.asarray(error, dtype=np.float64)
+        h, w = np.shape(image)
+        cell = np.ones((h // error.shape[0], w // error.shape[1]))
+        coloured.append(colormap(np.kron(error, cell), 0.0, 1.0))
+    top = np.repeat(shaded[..., None], 3, axis=-1)
+    return np.concatenate([top, np.ones((4, *top.shape[1:]), np.float32), strip(coloured)])

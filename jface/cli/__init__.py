@@ -19,6 +19,7 @@ from jface import __version__
 #: Modules contributing sub-commands, in the order their demo steps run.
 COMMAND_MODULES = (
     "jface.cli._detail",
+    "jface.cli._apps",
     "jface.cli._mesh",
     "jface.cli._faces",
     "jface.cli._wrinkles",

@@ -1,15 +1,17 @@
 """Applications of detail statistics on displacement images (Golovinskiy et al. 2006, §3.2–§4):
-interpolation with detail restored, and the simple alternatives the paper compares against."""
+interpolation with detail restored, and the simple alternatives the paper compares against
+(Perlin noise, sharpening, detail transfer)."""
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from jface import _checks, pyramid
+from jface import _checks, noise, pyramid
 from jface.detail._stats import (
     DetailStats,
     analyze_like,
@@ -104,26 +106,70 @@ def band_correlation(a: ArrayLike, b: ArrayLike, scale: int, n_scales: int = 4) 
     return float(jnp.vdot(x, y) / jnp.sqrt(jnp.vdot(x, x) * jnp.vdot(y, y)))
 
 
-def compare_methods(
+def perlin_detail(key: PRNGKeyArray, image: ArrayLike, target: DetailStats) -> Float[Array, "H W"]:
+    """Baseline "noise" (§4, Fig. 10d): add fractal Perlin noise to the image, with the amount
+    that brings its detail amplitude to the target's; location and orientation are ignored.
+
+    The noise has one octave per pyramid scale plus one for the high-pass: its finest lattice
+    cells are 2 pixels wide, its coarsest as wide as the coarsest detail band's wavelengths.
+    """
+    key = _checks.key(key)
+    image = _checks.float_array(image, "image", ndim=2)
+    h, w = image.shape
+    octaves = target.n_scales + 1
+    frequency = max(1, round(max(h, w) / 2**octaves))
+    texture = noise.perlin(key, (h, w), frequency=frequency, octaves=octaves, dtype=image.dtype)
+    own = analyze_like(image, target).detail_rms()
+    theirs = analyze_like(texture, target).detail_rms()
+    wanted = target.detail_rms().astype(image.dtype)
+    # Independent detail adds in energy: own² + (gain · theirs)² = wanted².
+    gain = jnp.sqrt(jnp.maximum(wanted**2 - own**2, 0.0)) / jnp.maximum(theirs, 1e-12)
+    return image + gain * texture
+
+
+#: The methods of the §4 comparison, in the order of the paper's Fig. 10 (c)–(f).
+METHODS = ("statistical", "perlin", "sharpen", "transfer")
+
+
+def method_results(
     key: PRNGKeyArray, source: ArrayLike, target_image: ArrayLike, target: DetailStats, **options
-) -> dict[str, dict[str, float]]:
-    """The comparison of §4 as numbers: for the statistical method and each baseline, the
-    median per-tile std error to the target statistics (lower is better) and the correlation
-    with the source's own detail at a coarse and a mid scale (higher keeps more of it).
+) -> dict[str, Float[Array, "H W"]]:
+    """Give ``source`` the detail of a target face by each method of §4 (Fig. 10 c–f).
+
+    Args:
+        key: random key (synthesis and Perlin noise).
+        source: ``(H, W)`` displacement image to change (the young face).
+        target_image: ``(H, W)`` displacement image of the target face (the donor of "transfer").
+        target: its statistics (or a group's).
+        **options: passed to :func:`jface.detail.synthesize`.
 
     Returns:
-        method → {"stats_error", "keeps_coarse", "keeps_mid"} for "statistical", "sharpen" and
-        "transfer".
+        method name (:data:`METHODS`) → ``(H, W)`` image.
     """
     key = _checks.key(key)
     source = _checks.float_array(source, "source", ndim=2)
-    results = {
-        "statistical": synthesize(key, source, target, **options),
+    synth_key, noise_key = jax.random.split(key)
+    return {
+        "statistical": synthesize(synth_key, source, target, **options),
+        "perlin": perlin_detail(noise_key, source, target),
         "sharpen": sharpen(source, target),
         "transfer": transfer_detail(source, target_image, target.n_scales),
     }
-    table = {}
+
+
+def method_scores(
+    results: dict[str, ArrayLike], source: ArrayLike, target: DetailStats
+) -> dict[str, dict[str, float]]:
+    """The §4 comparison as numbers, for each image of ``results``: the median per-tile std
+    error to the target statistics (lower is better) and the correlation with the source's own
+    detail at the coarsest and at a mid scale (higher keeps more of the individual's detail).
+
+    Returns:
+        name → {"stats_error", "keeps_coarse", "keeps_mid"}.
+    """
+    source = _checks.float_array(source, "source", ndim=2)
     coarse, mid = target.n_scales - 1, max(target.n_scales // 2 - 1, 0)
+    table = {}
     for name, image in results.items():
         error = stats_error(analyze_like(image, target), target)
         table[name] = {
@@ -132,3 +178,11 @@ def compare_methods(
             "keeps_mid": band_correlation(image, source, mid, target.n_scales),
         }
     return table
+
+
+def compare_methods(
+    key: PRNGKeyArray, source: ArrayLike, target_image: ArrayLike, target: DetailStats, **options
+) -> dict[str, dict[str, float]]:
+    """:func:`method_scores` of :func:`method_results`: the comparison of §4 in one call."""
+    results = method_results(key, source, target_image, target, **options)
+    return method_scores(results, source, target)

@@ -1,0 +1,279 @@
+"""``jface interpolate``, ``jface add-detail`` and ``jface age``: the applications of
+Golovinskiy et al. 2006 §3.2–§3.4 (and the §4 comparison) on face folders.
+
+A face folder is what ``jface remesh`` writes: ``base.obj`` (or ``.ply``) with uv,
+``displacement.exr`` and ``hierarchy.npz`` (marker mesh + level offsets). Every command writes its
+results as face folders too, so they chain (interpolate, then age the result, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from jface import detail, io, mesh, render
+from jface.cli._detail import _parse_group
+from jface.cli._mesh import _shaded_layout
+from jface.detail._meshes import check_faces
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    interp = sub.add_parser(
+        "interpolate", help="interpolate faces, detail coerced to the mixed statistics (§3.2)"
+    )
+    interp.add_argument("faces", nargs="+", help="face folders (from jface remesh)")
+    interp.add_argument(
+        "--weights", help="comma-separated weights summing to 1 (default: equal weights)"
+    )
+    interp.add_argument("--out", required=True, help="output folder")
+    _synthesis_options(interp)
+    interp.set_defaults(run=_interpolate)
+
+    add = sub.add_parser(
+        "add-detail", help="coerce a low-resolution face's detail to target statistics (§3.3)"
+    )
+    add.add_argument("face", help="face folder (from jface remesh of the low-resolution mesh)")
+    _target_options(add, required=True)
+    add.add_argument("--out", required=True, help="output folder")
+    _synthesis_options(add)
+    add.set_defaults(run=_add_detail)
+
+    age = sub.add_parser(
+        "age",
+        help="age a face with an old one's detail and finer levels (§3.4; swap them to de-age), "
+        "and compare with Perlin noise, sharpening and detail transfer (§4)",
+    )
+    age.add_argument("young", help="face folder to change")
+    age.add_argument("old", help="face folder giving the statistics and the finer levels")
+    age.add_argument(
+        "--levels",
+        type=int,
+        default=3,
+        help="coarsest levels kept from the young face (1 = marker mesh only; default 3)",
+    )
+    _target_options(age, required=False)
+    age.add_argument("--out", required=True, help="output folder")
+    _synthesis_options(age)
+    age.set_defaults(run=_age)
+
+
+def _synthesis_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--grid", type=int, default=16, help="tiles per side for the statistics")
+    parser.add_argument("--scales", type=int, default=4, help="pyramid scales")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--n-iter", type=int, default=detail._synthesis.N_ITER)
+    parser.add_argument("--noise", type=float, default=detail._synthesis.NOISE)
+    parser.add_argument("--format", choices=("obj", "ply"), default="obj", help="mesh format")
+
+
+def _target_options(parser: argparse.ArgumentParser, required: bool) -> None:
+    group = parser.add_mutually_exclusive_group(required=required)
+    group.add_argument("--stats", help="target statistics of one face (.npz from jface analyze)")
+    group.add_argument("--target", help="target face folder (its statistics are taken)")
+    group.add_argument("--db", help="population file (jface db build): target = a group mean")
+    parser.add_argument(
+        "--group",
+        metavar="FIELD=VALUE[,FIELD=LOW..HIGH]",
+        help="with --db: the group whose mean statistics are the target, e.g. 'age=60..80'",
+    )
+
+
+def read_face(folder: str | Path) -> detail.Face:
+    """Read a face folder written by ``jface remesh`` (or by these commands)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"no such face folder: {folder} (make one with jface remesh)")
+    bases = [folder / f"base.{ext}" for ext in ("obj", "ply") if (folder / f"base.{ext}").is_file()]
+    if not bases:
+        raise FileNotFoundError(f"{folder} has no base.obj or base.ply (see jface remesh)")
+    base = io.read_mesh(bases[0], merge=False)
+    if base.uv is None:
+        raise ValueError(f"{bases[0]} has no per-vertex uv; use a base mesh from jface remesh")
+    image = io.read_map(folder / "displacement.exr")
+    arrays, meta = io.load_arrays(folder / "hierarchy.npz", kind="MeshHierarchy")
+    if "schedule" not in meta:
+        raise ValueError(f"{folder / 'hierarchy.npz'} lacks the 'schedule' metadata field")
+    schedule = tuple(int(n) for n in meta["schedule"])
+    hierarchy = mesh.template_hierarchy(None, *schedule)
+    names = ["markers"] + [f"offsets_{k + 1}" for k in range(hierarchy.n_projected)]
+    missing = [name for name in names if name not in arrays]
+    if missing:
+        raise ValueError(f"{folder / 'hierarchy.npz'} lacks the arrays {missing}")
+    if len(base.vertices) != hierarchy.base.n_vertices:
+        raise ValueError(
+            f"{bases[0]} has {len(base.vertices)} vertices, but schedule {list(schedule)} gives "
+            f"base meshes of {hierarchy.base.n_vertices}"
+        )
+    return detail.Face(
+        jnp.asarray(arrays["markers"], jnp.float32),
+        tuple(jnp.asarray(arrays[name], jnp.float32) for name in names[1:]),
+        mesh.Mesh(
+            jnp.asarray(base.vertices, jnp.float32),
+            jnp.asarray(base.faces, jnp.int32),
+            jnp.asarray(base.uv, jnp.float32),
+        ),
+        jnp.asarray(image, jnp.float32),
+        schedule,
+    )
+
+
+def write_face(
+    out: Path, face: detail.Face, meta: dict, fmt: str, protect: tuple | list = ()
+) -> None:
+    """Write a face folder (the layout of ``jface remesh``) with shaded PNGs of the base and the
+    detailed mesh drawn in the rectangle layout."""
+    protect = tuple(protect)
+    base = face.base
+    io.write_mesh(
+        out / f"base.{fmt}",
+        np.asarray(base.vertices),
+        np.asarray(base.faces),
+        uv=np.asarray(base.uv),
+        comment=f"jface {meta['jface_version']} base mesh",
+        protect=protect,
+    )
+    image = np.asarray(face.image)
+    io.write_exr(out / "displacement.exr", image, metadata=meta, protect=protect)
+    io.write_png(out / "displacement.png", render.shade(image), metadata=meta, protect=protect)
+    size = min(image.shape[0], 1024)
+    for name, shown in (("base", base), ("detailed", face.detailed())):
+        picture = _shaded_layout(shown.vertices, shown.faces, shown.uv, size)
+        io.write_png(out / f"{name}_shaded.png", picture, metadata=meta, protect=protect)
+    arrays = {"markers": face.markers, "control": face.control}
+    arrays |= {f"offsets_{k + 1}": o for k, o in enumerate(face.offsets)}
+    meta = {**meta, "schedule": list(face.schedule)}
+    io.save_arrays(out / "hierarchy.npz", arrays, meta, kind="MeshHierarchy", protect=protect)
+
+
+def _layout(args: argparse.Namespace) -> dict:
+    return {"grid": args.grid, "n_scales": args.scales}
+
+
+def _target(
+    args: argparse.Namespace, default: detail.Face | None
+) -> tuple[detail.DetailStats, str]:
+    """``(statistics, description)`` of the target named by --stats / --target / --db --group,
+    or of ``default`` (the old face)."""
+    if args.group and not args.db:
+        raise ValueError("--group needs --db")
+    if args.stats:
+        return detail.load_stats(args.stats)[0].reduced(), Path(args.stats).name
+    if args.db:
+        if not args.group:
+            raise ValueError("--db needs --group FIELD=VALUE[,...] naming the target group")
+        population = detail.Population.load(args.db)
+        _, criteria = _parse_group(f"target:{args.group}")
+        return population.select(**criteria).mean().reduced(), f"{args.db} [{args.group}]"
+    face = read_face(args.target) if args.target else default
+    name = args.target or "the old face"
+    return detail.analyze(face.image, **_layout(args)), str(name)
+
+
+def _options(args: argparse.Namespace) -> dict:
+    return {"n_iter": args.n_iter, "noise": args.noise}
+
+
+def _error(image, target: detail.DetailStats) -> float:
+    """Median per-tile std error of an image to the target statistics."""
+    return float(jnp.median(detail.stats_error(detail.analyze_like(image, target), target)))
+
+
+def _tile_errors(image, target: detail.DetailStats) -> np.ndarray:
+    """Per-tile error to the target statistics, median over bands."""
+    return np.median(np.asarray(detail.stats_error(detail.analyze_like(image, target), target)), 0)
+
+
+def _interpolate(args: argparse.Namespace) -> None:
+    faces = [read_face(f) for f in tqdm(args.faces, desc="read faces", unit="face")]
+    check_faces(faces)  # one layout, before their images are stacked
+    if args.weights:
+        weights = [float(w) for w in args.weights.split(",")]
+    else:
+        weights = [1.0 / len(faces)] * len(faces)
+    images = jnp.stack([f.image for f in faces])
+    stats = detail.analyze_batch(images, **_layout(args))
+    result = detail.interpolate_faces(
+        jax.random.key(args.seed), faces, stats, jnp.asarray(weights, jnp.float32), **_options(args)
+    )
+    meta = io.provenance(
+        seed=args.seed,
+        faces=[Path(f).name for f in args.faces],
+        weights=weights,
+        experiment="Golovinskiy 2006 §3.2 interpolation",
+        **_layout(args),
+        **_options(args),
+    )
+    out = Path(args.out)
+    for name, face in (("average", result.average), ("coerced", result.coerced)):
+        write_face(out / name, face, meta, args.format, protect=args.faces)
+    table = {
+        name: {"median_tile_std_error": _error(face.image, result.target)}
+        for name, face in (("average", result.average), ("coerced", result.coerced))
+    }
+    figure = render.strip([render.shade(result.average.image), render.shade(result.coerced.image)])
+    io.write_png(out / "average_vs_coerced.png", figure, metadata=meta)
+    io.write_json(out / "interpolation.json", {**meta, "results": table})
+    print(json.dumps({"out": str(out), **table}))
+
+
+def _add_detail(args: argparse.Namespace) -> None:
+    face = read_face(args.face)
+    target, source = _target(args, None)
+    result = detail.add_detail(jax.random.key(args.seed), face, target, **_options(args))
+    meta = io.provenance(
+        seed=args.seed,
+        face=Path(args.face).name,
+        target=source,
+        experiment="Golovinskiy 2006 §3.3 adding detail",
+        **_options(args),
+    )
+    out = Path(args.out)
+    write_face(out, result, meta, args.format, protect=(args.face,))
+    figure = render.strip([render.shade(face.image), render.shade(result.image)])
+    io.write_png(out / "before_after.png", figure, metadata=meta)
+    table = {"before": _error(face.image, target), "after": _error(result.image, target)}
+    io.write_json(out / "add_detail.json", {**meta, "median_tile_std_error": table})
+    print(json.dumps({"out": str(out), "median_tile_std_error": table}))
+
+
+def _age(args: argparse.Namespace) -> None:
+    young, old = read_face(args.young), read_face(args.old)
+    target, source = _target(args, old)
+    key = jax.random.key(args.seed)
+    steps = tqdm(total=3, desc="age", unit="step")
+    aged = detail.age(key, young, old, target, n_coarse=args.levels, **_options(args))
+    steps.update()
+    results = detail.method_results(key, young.image, old.image, target, **_options(args))
+    steps.update()
+    scores = detail.method_scores(results, young.image, target)
+    steps.update()
+    steps.close()
+    meta = io.provenance(
+        seed=args.seed,
+        young=Path(args.young).name,
+        old=Path(args.old).name,
+        target=source,
+        levels=args.levels,
+        experiment="Golovinskiy 2006 §3.4 aging, §4 comparison",
+        **_options(args),
+    )
+    out = Path(args.out)
+    protect = (args.young, args.old)
+    write_face(out / "aged", aged, meta, args.format, protect)
+    detail_only = detail.Face(young.markers, young.offsets, young.base, aged.image, young.schedule)
+    write_face(out / "detail_only", detail_only, meta, args.format, protect)
+    for name, image in results.items():
+        io.write_exr(out / "methods" / f"{name}.exr", np.asarray(image), metadata=meta)
+    # Fig. 10: young, old, then the four methods; below, each one's per-tile error to the target
+    # statistics (0 dark .. 100% yellow).
+    images = [young.image, old.image, *results.values()]
+    figure = render.comparison(images, [_tile_errors(image, target) for image in images])
+    io.write_png(out / "comparison.png", figure, metadata=meta)
+    io.write_json(out / "comparison.json", {**meta, "methods": scores})
+    print(json.dumps({"out": str(out), "methods": scores}))
