@@ -6,5 +6,13 @@ the stand-in for the VGG style loss of Huang & Belongie 2017 used by the paper.
 """
 
 from jface.optim._pso import PSOResult, pso
+from jface.optim._texture import TextureStats, texture_distance, texture_loss, texture_stats
 
-__all__ = ["PSOResult", "pso"]
+__all__ = [
+    "PSOResult",
+    "TextureStats",
+    "pso",
+    "texture_distance",
+    "texture_loss",
+    "texture_stats",
+]
