@@ -146,7 +146,7 @@ def pso(
         inertia=tuple(_checks.real(v, "inertia", low=0.0) for v in _triple(inertia)),
     )
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
-    out = jax.eval_shape(loss_fn, jax.ShapeDtypeStruct((n,), jnp.float32))
+    out = eqx.filter_eval_shape(loss_fn, jax.ShapeDtypeStruct((n,), jnp.float32))
     if not (isinstance(out, jax.ShapeDtypeStruct) and out.shape == () and out.dtype.kind == "f"):
         raise TypeError(f"loss_fn must return a scalar float for a ({n},) vector, got {out}")
     keys = jax.random.split(key, n_trials)

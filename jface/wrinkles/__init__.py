@@ -21,6 +21,7 @@ from jface.wrinkles._drawing import (
     pore_strength,
     shape_function,
 )
+from jface.wrinkles._fit import PAPER_NAMES, WrinkleFit, fit_wrinkles
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
 from jface.wrinkles._params import (
     PARAMETER_RANGES,
@@ -46,16 +47,19 @@ __all__ = [
     "BETA",
     "N_HAT",
     "N_SAMPLES",
+    "PAPER_NAMES",
     "PARAMETER_RANGES",
     "GraphSpec",
     "PoreGraph",
     "Pores",
+    "WrinkleFit",
     "WrinkleParams",
     "angle_distance",
     "build_graph",
     "continuation_kernel",
     "default_capacity",
     "draw",
+    "fit_wrinkles",
     "graph_spec",
     "half_edge_scores",
     "load_params",
