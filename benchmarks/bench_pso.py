@@ -70,16 +70,7 @@ def main() -> None:
         equal_evaluations = {"n_agents": AGENTS, "n_epochs": EPOCHS - 1, "topology": topology}
         ours = np.median(
             [
-                float(
-                    pso(
-                        jax.random.key(s),
-                        rastrigin,
-                        BOUNDS,
-                        n_agents=AGENTS,
-                        n_epochs=EPOCHS - 1,
-                        topology=topology,
-                    ).loss  # fmt: skip
-                )
+                float(pso(jax.random.key(s), rastrigin, BOUNDS, **equal_evaluations).loss)
                 for s in range(args.seeds)
             ]
         )
