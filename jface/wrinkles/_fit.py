@@ -248,19 +248,24 @@ def fit_wrinkles(
     layout = _layout(k_layout, target.shape, d_range, _checks.integer(n_steps, "n_steps", low=1))
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
-    # one swarm per trial so that each trial has its own simulation key; compiled once
-    trials = [
-        pso(
-            k,
-            _SwarmLoss(sk, target_stats, base, layout, names),
-            (low, high),
-            n_agents=n_agents,
-            n_epochs=n_epochs,
-            cyclic=cyclic,
-            progress=None if progress is None else _offset(progress, t),
+    # one swarm per trial, each with its own simulation key; all share one compile
+    reporter = None if progress is None else _TrialProgress(progress)
+    trials = []
+    for t, (k, sk) in enumerate(zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True)):
+        if reporter is not None:
+            reporter.trial = t
+        loss = _SwarmLoss(sk, target_stats, base, layout, names)
+        trials.append(
+            pso(
+                k,
+                loss,
+                (low, high),
+                n_agents=n_agents,
+                n_epochs=n_epochs,
+                cyclic=cyclic,
+                progress=reporter,
+            )
         )
-        for t, (k, sk) in enumerate(zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True))
-    ]
     best = int(np.argmin([float(r.loss) for r in trials]))
     swarm = _merge(trials, best)
     sim_key = sim_keys[best]
@@ -269,8 +274,15 @@ def fit_wrinkles(
     return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image)
 
 
-def _offset(progress, trial):
-    return lambda _t, epoch, best: progress(trial, epoch, best)
+class _TrialProgress:
+    """Reports ``(trial, epoch, best)`` for consecutive single-trial swarms. One object serves
+    every trial (the swarm's compiled run is keyed on it, so the trials share one compile)."""
+
+    def __init__(self, progress):
+        self.progress, self.trial = progress, 0
+
+    def __call__(self, _trial, epoch, best):
+        self.progress(self.trial, epoch, best)
 
 
 def _merge(trials: list[PSOResult], best: int) -> PSOResult:
