@@ -29,7 +29,7 @@ from jaxtyping import Array, Float
 from jface import _checks
 from jface.optim import PSOResult, pso, texture_distance, texture_stats
 from jface.optim._texture import _stats
-from jface.wrinkles._drawing import draw
+from jface.wrinkles._drawing import bin_primitives, draw, primitives
 from jface.wrinkles._graph import build_graph, graph_spec
 from jface.wrinkles._params import PARAMETER_RANGES, WrinkleParams
 from jface.wrinkles._sampling import sample_pores
@@ -112,13 +112,34 @@ def _simulate(key, levels: tuple[WrinkleParams, WrinkleParams], layout: _Layout)
     )
 
 
+_SPAN = 4  # tiles per axis a primitive may touch in the swarm's draws (static)
+
+
 def _draw(key, sims, levels, shape) -> Float[Array, "H W"]:
+    """Both levels drawn and summed (the finest with the no-bulge profile, as in the paper)."""
+    return _draw_checked(key, sims, levels, shape)[0]
+
+
+def _draw_checked(key, sims, levels, shape) -> tuple[Float[Array, "H W"], Array]:
+    """Like :func:`_draw`, plus whether some primitive was too large to draw.
+
+    Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into one huge pore) can make a
+    primitive exceed the drawing's static tile span, which would abort the whole swarm. Such a
+    level is drawn without wrinkles (a safe stand-in) and flagged, so its loss becomes NaN, which
+    the swarm contains and counts.
+    """
     k1, k2 = jax.random.split(jax.random.fold_in(key, 7))
-    (g1, w1), (g2, w2) = sims
-    # the finest level uses the no-bulge profile, as in the paper
-    return draw(k1, g1, w1, levels[0], shape, span=4) + draw(
-        k2, g2, w2, levels[1], shape, span=4, bulge=False
-    )
+    out, bad = jnp.zeros(shape, jnp.float32), jnp.zeros((), bool)
+    for k, (graph, w), params, bulge in zip((k1, k2), sims, levels, (True, False), strict=True):
+        prims = primitives(jax.random.split(k)[0], graph, w, params)
+        overflow = bin_primitives(
+            prims, shape, tile=32, span=_SPAN, bulge=bulge, periodic=graph.periodic
+        ).overflow
+        safe = _with(params, {"pore_width": jnp.where(overflow, 0.01, params.pore_width)})
+        w = jnp.where(overflow, 0.0, w)
+        out = out + draw(k, graph, w, safe, shape, tile=32, span=_SPAN, bulge=bulge)
+        bad = bad | overflow
+    return out, bad
 
 
 def _levels_from(x: Array, names: Sequence[str], base: tuple[WrinkleParams, WrinkleParams]):
@@ -157,8 +178,9 @@ class _SwarmLoss(eqx.Module):
     def __call__(self, x):
         levels = _levels_from(x, self.names, self.base)
         sims = _simulate(self.key, levels, self.layout)
-        image = _draw(self.key, sims, levels, self.layout.shape)
-        return texture_distance(_stats(image, 4, 4, "reflect"), self.target)
+        image, bad = _draw_checked(self.key, sims, levels, self.layout.shape)
+        loss = texture_distance(_stats(image, 4, 4, "reflect"), self.target)
+        return jnp.where(bad, jnp.nan, loss)
 
 
 def _bounds(names, d_range, overrides) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -312,8 +334,9 @@ def _refine(sim_key, levels, layout, target_stats, names, steps):
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
 
     def forward(z):
-        image = _draw(sim_key, sims, unpack(z), layout.shape)
-        return texture_distance(_stats(image, 4, 4, "reflect"), target_stats)
+        image, bad = _draw_checked(sim_key, sims, unpack(z), layout.shape)
+        loss = texture_distance(_stats(image, 4, 4, "reflect"), target_stats)
+        return jnp.where(bad, jnp.inf, loss)  # the line search backs off from undrawable steps
 
     # the drawing's multi-pass while_loop is forward- but not reverse-differentiable, so the
     # gradient (a dozen parameters at most) comes from forward mode
