@@ -219,19 +219,14 @@ def _pore_candidates(image, threshold, *, min_size, capacity):
     )
 
 
-def extract_pores(
-    image: ArrayLike,
-    *,
-    threshold: float = 1.0,
-    min_size: int = 15,
-    capacity: int = 65536,
-    periodic: bool = False,
-) -> Pores:
-    """Pores of a coarse displacement map (§4.1), as the first level's :class:`Pores`.
+def find_pores(
+    image: ArrayLike, *, threshold: float = 1.0, min_size: int = 15, capacity: int = 65536
+) -> PoreCandidates:
+    """Pore centroids of a coarse displacement map (§4.1).
 
     High-pass (σ = 2 px), keep depressions deeper than ``threshold`` standard deviations of the
     high-pass, one 3×3 binary opening, 8-connected components of at least ``min_size`` pixels →
-    their centroids (pass the result as ``initial=`` to :func:`sample_pores`/:func:`synthesize`).
+    their centroids.
 
     Raises:
         ValueError: malformed image, or more pores than ``capacity``.
@@ -241,9 +236,32 @@ def extract_pores(
     min_size = _checks.integer(min_size, "min_size", low=1)
     capacity = _checks.integer(capacity, "capacity", low=1)
     found = _pore_candidates(img, jnp.float32(threshold), min_size=min_size, capacity=capacity)
+    if int(found.count) > capacity:
+        raise ValueError(f"found {int(found.count)} pores, more than capacity={capacity}")
+    return found
+
+
+def extract_pores(
+    image: ArrayLike,
+    *,
+    threshold: float = 1.0,
+    min_size: int = 15,
+    capacity: int = 65536,
+    periodic: bool = False,
+) -> Pores:
+    """:func:`find_pores` as the first level's :class:`Pores` (pass as ``initial=`` to
+    :func:`sample_pores` / :func:`synthesize`).
+
+    Raises:
+        ValueError: as :func:`find_pores`, or no pore found.
+    """
+    found = find_pores(image, threshold=threshold, min_size=min_size, capacity=capacity)
     count = int(found.count)
-    if count > capacity:
-        raise ValueError(f"found {count} pores, more than capacity={capacity}")
+    if count == 0:
+        raise ValueError(
+            f"no pore found (components of ≥ {min_size} px deeper than {threshold} std); "
+            "lower threshold or min_size"
+        )
     return make_pores(found.positions[:count], periodic=periodic)
 
 
