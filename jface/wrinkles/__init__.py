@@ -21,6 +21,19 @@ from jface.wrinkles._drawing import (
     pore_strength,
     shape_function,
 )
+from jface.wrinkles._extraction import (
+    Orientations,
+    PoreCandidates,
+    binary_opening,
+    blend_with_scan,
+    extract_orientation,
+    extract_pores,
+    find_pores,
+    gabor_energy,
+    gabor_kernels,
+    gaussian_blur,
+    label_components,
+)
 from jface.wrinkles._fit import PAPER_NAMES, WrinkleFit, fit_wrinkles
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
 from jface.wrinkles._params import (
@@ -41,6 +54,7 @@ from jface.wrinkles._simulation import (
     orientation_density,
     simulate,
 )
+from jface.wrinkles._synthesis import Level, Synthesis, synthesize
 from jface.wrinkles._variation import perlin_variation
 
 __all__ = [
@@ -50,18 +64,31 @@ __all__ = [
     "PAPER_NAMES",
     "PARAMETER_RANGES",
     "GraphSpec",
+    "Level",
+    "Orientations",
+    "PoreCandidates",
     "PoreGraph",
     "Pores",
+    "Synthesis",
     "WrinkleFit",
     "WrinkleParams",
     "angle_distance",
+    "binary_opening",
+    "blend_with_scan",
     "build_graph",
     "continuation_kernel",
     "default_capacity",
     "draw",
+    "extract_orientation",
+    "extract_pores",
+    "find_pores",
     "fit_wrinkles",
+    "gabor_energy",
+    "gabor_kernels",
+    "gaussian_blur",
     "graph_spec",
     "half_edge_scores",
+    "label_components",
     "load_params",
     "make_pores",
     "mellowmax",
@@ -75,4 +102,5 @@ __all__ = [
     "shape_function",
     "simulate",
     "stack_params",
+    "synthesize",
 ]

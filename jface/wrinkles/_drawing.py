@@ -11,13 +11,14 @@ band's vertices.
 
 The rasteriser bins primitives to square screen tiles (each primitive to the at most
 ``span × span`` tiles its bounding box touches, sorted by tile), then evaluates each tile's pixels
-against its primitives in chunks of ``capacity`` with the blend accumulated additively (as in the
-paper's three-channel framebuffer, with a running maximum for float32 range), so any resolution
-and any number of overlapping primitives works with bounded memory.
+against its primitives in ``passes`` chunks of ``capacity`` with the blend accumulated additively
+(as in the paper's three-channel framebuffer, with a running maximum for float32 range), so any
+resolution works with memory bounded by the tile batch.
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import equinox as eqx
@@ -132,6 +133,7 @@ def pore_strength(
     return jnp.maximum(w_max + dmin, w_max + blend * (w_sum - w_max))
 
 
+@jax.jit
 def primitives(key: jax.Array, graph: PoreGraph, weights, params: WrinkleParams) -> Primitives:
     """The wrinkle and pore primitives of one level (traced-friendly, no validation)."""
     per = graph.periodic
@@ -210,8 +212,10 @@ def needed_span(
 ) -> int:
     """Smallest ``span`` that bins these (concrete) primitives without overflow."""
     first, n = _tile_range(*_bbox(prims, bulge), shape, tile)
-    if not periodic:
-        grid = np.array([-(-shape[1] // tile), -(-shape[0] // tile)])
+    grid = np.array([-(-shape[1] // tile), -(-shape[0] // tile)])
+    if periodic:
+        n = np.minimum(np.asarray(n), grid)
+    else:
         last = np.minimum(np.asarray(first) + np.asarray(n) - 1, grid - 1)
         n = last - np.maximum(np.asarray(first), 0) + 1
     n = np.where(np.asarray(prims.valid)[:, None], np.asarray(n), 1)
@@ -226,13 +230,13 @@ def bin_primitives(
     gy, gx = -(-shape[0] // tile), -(-shape[1] // tile)
     first, n = _tile_range(*_bbox(prims, bulge), shape, tile)
     grid = jnp.array([gx, gy], jnp.int32)
-    if periodic:
-        overflow = jnp.any(prims.valid[:, None] & (n > jnp.minimum(span, grid)))
+    if periodic:  # a box wider than the map covers every tile once
+        n = jnp.minimum(n, grid)
     else:  # clip to the image first: only visible tiles count
         last = jnp.minimum(first + n - 1, grid - 1)
         first = jnp.maximum(first, 0)
         n = last - first + 1
-        overflow = jnp.any(prims.valid[:, None] & (n > span))
+    overflow = jnp.any(prims.valid[:, None] & (n > span))
     o = jnp.arange(span, dtype=jnp.int32)
     tx = first[:, 0, None, None] + o[None, None, :]  # (m, 1, span)
     ty = first[:, 1, None, None] + o[None, :, None]  # (m, span, 1)
@@ -263,7 +267,7 @@ def _fragments(prims: Primitives, q, periodic, bulge):
     normal = jnp.stack([-prims.delta[:, 1], prims.delta[:, 0]], -1) / jnp.sqrt(safe_len2)[:, None]
     u = t * (N_VERTICES - 1)
     j = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, N_VERTICES - 2)
-    f = u - j
+    f = u - j.astype(jnp.float32)
     o0 = jnp.take_along_axis(prims.offsets[None], j[..., None], -1)[..., 0]
     o1 = jnp.take_along_axis(prims.offsets[None], j[..., None] + 1, -1)[..., 0]
     perp = perp - ((1.0 - f) * o0 + f * o1)[..., None] * normal[None]
@@ -306,7 +310,9 @@ def _accumulate(acc: _Acc, s, covered, beta):
     return _Acc(mv, sv, mb, sb, acc.n + jnp.sum(covered, -1).astype(jnp.float32))
 
 
-def _render_tiles(prims, bins, tile_ids, shape, *, tile, capacity, bulge, periodic, beta, n_hat):
+def _render_tiles(
+    prims, bins, tile_ids, shape, *, tile, capacity, passes, bulge, periodic, beta, n_hat
+):
     """Blended displacement (Eq. 11) of the given tiles, ``(len(tile_ids), tile, tile)``."""
     gx = -(-shape[1] // tile)
     h, w = shape
@@ -314,23 +320,23 @@ def _render_tiles(prims, bins, tile_ids, shape, *, tile, capacity, bulge, period
 
     def one(tid):
         ty, tx = tid // gx, tid % gx
-        ys = (ty * tile + offs + 0.5) / h
-        xs = (tx * tile + offs + 0.5) / w
+        ys = ((ty * tile).astype(jnp.float32) + offs + 0.5) / h
+        xs = ((tx * tile).astype(jnp.float32) + offs + 0.5) / w
         q = jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
         count, start = bins.count[tid], bins.start[tid]
         zero = jnp.zeros(tile * tile, jnp.float32)
 
-        def body(state):
-            c, acc = state
-            slot = c * capacity + jnp.arange(capacity)
+        def body(acc, c):
+            slot = c * capacity + jnp.arange(capacity, dtype=jnp.int32)
             idx = bins.order[jnp.minimum(start + slot, bins.order.shape[0] - 1)]
             chunk = jax.tree.map(lambda a: a[idx], prims)
             chunk = chunk._replace(valid=chunk.valid & (slot < count))
             s, covered = _fragments(chunk, q, periodic, bulge)
-            return c + 1, _accumulate(acc, s, covered, beta)
+            return _accumulate(acc, s, covered, beta), None
 
-        _, acc = lax.while_loop(
-            lambda state: state[0] * capacity < count, body, (0, _Acc(zero, zero, zero, zero, zero))
+        # a static number of passes (not a while loop) keeps the map reverse-differentiable
+        acc, _ = lax.scan(
+            body, _Acc(zero, zero, zero, zero, zero), jnp.arange(passes, dtype=jnp.int32)
         )
         valley = _mm_finish(acc.m_valley, acc.s_valley, acc.n, beta, n_hat)
         bulge_ = _mm_finish(acc.m_bulge, acc.s_bulge, acc.n, beta, n_hat)
@@ -375,9 +381,10 @@ class DrawOptions(NamedTuple):
     """Static settings of the rasteriser (see :func:`draw`)."""
 
     bulge: bool = True
-    tile: int = 32
+    tile: int | None = None
     capacity: int = 16
     span: int | None = None
+    passes: int | None = None
     beta: float = BETA
     n_hat: int = N_HAT
 
@@ -404,10 +411,17 @@ def _check_draw(key, graph, weights, params, shape, opts: DrawOptions):
         _checks.integer(shape[0], "shape[0]", low=1, high=_MAX_SIDE),
         _checks.integer(shape[1], "shape[1]", low=1, high=_MAX_SIDE),
     )
-    tile = _checks.integer(opts.tile, "tile", low=1, high=1024)
+    if opts.tile is None:  # periodic binning wraps by whole tiles: the tile must divide the map
+        side = math.gcd(*shape) if graph.periodic else 32
+        tile = max(t for t in range(1, 33) if side % t == 0)
+    else:
+        tile = _checks.integer(opts.tile, "tile", low=1, high=1024)
+    if graph.periodic and (shape[0] % tile or shape[1] % tile):
+        raise ValueError(f"tile must divide both sides of a periodic map {shape}, got {tile}")
     capacity = _checks.integer(opts.capacity, "capacity", low=1, high=4096)
-    if opts.span is not None:
-        _checks.integer(opts.span, "span", low=1, high=4096)
+    for name in ("span", "passes"):
+        if getattr(opts, name) is not None:
+            _checks.integer(getattr(opts, name), name, low=1, high=4096)
     _checks.real(opts.beta, "beta", low=0.0, open_low=True)
     _checks.integer(opts.n_hat, "n_hat", low=1)
     return key, w, shape, opts._replace(tile=tile, capacity=capacity)
@@ -421,9 +435,10 @@ def draw(
     shape: tuple[int, int],
     *,
     bulge: bool = True,
-    tile: int = 32,
+    tile: int | None = None,
     capacity: int = 16,
     span: int | None = None,
+    passes: int | None = None,
     beta: float = BETA,
     n_hat: int = N_HAT,
 ) -> Float[Array, "H W"]:
@@ -449,34 +464,53 @@ def draw(
         params: the level's :class:`WrinkleParams`.
         shape: ``(H, W)`` of the map covering the unit square (static).
         bulge: Eq. 9's "ours, bulge" profile (True) or "ours, no bulge" (the paper's finest level).
-        tile: screen-tile side in pixels (static; performance only).
-        capacity: primitives evaluated per tile and pass (static; performance only — tiles with
-            more primitives take several passes).
-        span: most tiles per axis a primitive's bounding box may touch (static). Default: the
-            exact need when the inputs are concrete, else 4; a primitive needing more raises an
-            error (at run time under jit) rather than drawing a wrong map.
+        tile: screen-tile side in pixels (static; performance only). Default 32, or for a
+            periodic graph the largest divisor ≤ 32 of both sides (periodic maps need one).
+        capacity: primitives evaluated per tile and pass (static; performance only).
+        span: most tiles per axis a primitive's bounding box may touch (static).
+        passes: passes per tile, so a tile holds up to ``passes · capacity`` primitives (static).
+            ``span`` and ``passes`` default to the exact need when the inputs are concrete, else
+            (under jit/vmap) to values that always suffice but evaluate every primitive in every
+            tile: pass them (e.g. measured on one concrete agent) for speed. Exceeding either
+            raises an error (at run time under jit) rather than drawing a wrong map.
         beta, n_hat: β and N̂_f of Eq. 10.
 
     Returns:
         ``(H, W)`` float32 displacement.
 
     Raises:
-        TypeError/ValueError: wrong types, sizes ≤ 0 or above 65536, weights outside [0, 1].
+        TypeError/ValueError: wrong types, sizes ≤ 0 or above 65536, weights outside [0, 1], a
+            tile that does not divide a periodic map.
     """
-    opts = DrawOptions(bulge, tile, capacity, span, beta, n_hat)
+    opts = DrawOptions(bulge, tile, capacity, span, passes, beta, n_hat)
     key, w, shape, opts = _check_draw(key, graph, weights, params, shape, opts)
     k_perturb, k_noise = jax.random.split(key)
     prims = primitives(k_perturb, graph, w, params)
-    if opts.span is None:
-        concrete = not any(_checks.is_traced(x) for x in jax.tree.leaves(prims))
-        opts = opts._replace(
-            span=needed_span(
-                prims, shape, tile=opts.tile, bulge=opts.bulge, periodic=graph.periodic
-            )
-            if concrete
-            else 4
-        )
+    opts = _static_sizes(prims, shape, opts, graph.periodic)
     return _draw(k_noise, prims, params, shape, opts, graph.periodic)
+
+
+def _static_sizes(prims, shape, opts: DrawOptions, periodic: bool) -> DrawOptions:
+    """Fill in ``span`` and ``passes``: exact for concrete primitives, else always sufficient."""
+    concrete = not any(_checks.is_traced(x) for x in jax.tree.leaves(prims))
+    span, passes = opts.span, opts.passes
+    if span is None:
+        span = max(-(-shape[0] // opts.tile), -(-shape[1] // opts.tile))
+        if concrete:
+            span = needed_span(prims, shape, tile=opts.tile, bulge=opts.bulge, periodic=periodic)
+    if passes is None:
+        passes = -(-prims.valid.shape[0] // opts.capacity)
+        if concrete:
+            bins = _bin(prims, shape, opts._replace(span=span), periodic)
+            passes = max(1, -(-int(jnp.max(bins.count)) // opts.capacity))
+    return opts._replace(span=span, passes=passes)
+
+
+@eqx.filter_jit
+def _bin(prims, shape, opts, periodic):
+    return bin_primitives(
+        prims, shape, tile=opts.tile, span=opts.span, bulge=opts.bulge, periodic=periodic
+    )
 
 
 @eqx.filter_jit
@@ -486,14 +520,20 @@ def _draw(key, prims, params, shape, opts, periodic):
     )
     g = bins.count.shape[0]
     tiles = _render_tiles(
-        prims, bins, jnp.arange(g), shape, tile=opts.tile, capacity=opts.capacity,
-        bulge=opts.bulge, periodic=periodic, beta=opts.beta, n_hat=opts.n_hat,
+        prims, bins, jnp.arange(g, dtype=jnp.int32), shape, tile=opts.tile, capacity=opts.capacity,
+        passes=opts.passes, bulge=opts.bulge, periodic=periodic, beta=opts.beta, n_hat=opts.n_hat,
     )  # fmt: skip
     blended = _assemble(tiles, shape, opts.tile)
     out = _finish(key, blended, params, _pixel_uv(shape), periodic)
-    return eqx.error_if(
+    out = eqx.error_if(
         out,
         bins.overflow,
         f"a wrinkle or pore touches more than span={opts.span} tiles per axis; pass a larger "
         "span (or a larger tile) to draw",
+    )
+    return eqx.error_if(
+        out,
+        jnp.max(bins.count) > opts.passes * opts.capacity,
+        f"a tile holds more than passes·capacity={opts.passes * opts.capacity} wrinkles and "
+        "pores; pass larger passes or capacity (or a smaller tile) to draw",
     )
