@@ -55,9 +55,12 @@ def _fade(t):
 
 
 def _octave(xy, frequency, seed, period):
-    """One octave of gradient noise at points ``xy`` (..., 2); ``period`` 0 means not periodic."""
+    """One octave of gradient noise at points ``xy`` (..., 2); ``period`` 0 means not periodic.
+
+    ``frequency`` and ``period`` are scalars or arrays broadcastable to ``xy.shape[:-1]``.
+    """
     dtype = xy.dtype
-    p = xy * frequency
+    p = xy * jnp.expand_dims(frequency, -1)
     cell = jnp.floor(p)
     f = p - cell
     ix0 = cell[..., 0].astype(jnp.int32)

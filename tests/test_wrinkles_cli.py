@@ -30,3 +30,33 @@ def test_bad_parameters_exit_with_a_message(tmp_path, capsys):
     code = main(["wrinkles", "simulate", "--out", str(tmp_path), "--cross", "3"])
     assert code == 2
     assert "WrinkleParams.cross must be in" in capsys.readouterr().err
+
+
+def test_render_and_extract(tmp_path, capsys):
+    from jface.io import read_exr, read_json, write_exr
+
+    params = tmp_path / "p.json"
+    save_params(params, [WrinkleParams(d=0.05, theta=0.5, s=0.2, pore_width=0.5, dmin=1.0)])
+    out = tmp_path / "w.exr"
+    args = ["wrinkles", "render", "--params", str(params), "--size", "64", "--steps", "10"]
+    assert main([*args, "--out", str(out), "--seed", "1", "--periodic"]) == 0
+    image = read_exr(out)
+    disp = image.channels["Y"]
+    assert disp.shape == (64, 64) and disp.min() < 0 and image.metadata["seed"] == 1
+    assert read_image(out.with_suffix(".png")).shape[:2] == (64, 64)
+    # blended with a "scan" of the same size: the micro detail on top of its low-pass
+    assert main([*args, "--out", str(tmp_path / "b.exr"), "--seed", "1", "--periodic",
+                 "--base", str(out)]) == 0  # fmt: skip
+    assert not np.allclose(read_exr(tmp_path / "b.exr").channels["Y"], disp)
+    assert main(["wrinkles", "extract", str(out), "--out", str(tmp_path / "e.json"),
+                 "--crop", "32", "--threshold", "0.5"]) == 0  # fmt: skip
+    levels = read_json(tmp_path / "e.json")["levels"]
+    assert np.asarray(levels[0]["theta"]).shape == (2, 2)
+    assert read_json(tmp_path / "e_pores.json")["kind"] == "Pores"
+    # a multi-channel EXR where one channel is expected, a bad size: one line, status 2
+    write_exr(tmp_path / "rgb.exr", np.zeros((64, 64, 3), np.float32))
+    capsys.readouterr()
+    assert main(["wrinkles", "extract", str(tmp_path / "rgb.exr"), "--out", "x.json"]) == 2
+    assert "expected one" in capsys.readouterr().err
+    assert main([*args, "--out", str(tmp_path / "z.exr"), "--size", "0"]) == 2
+    assert "--size must be in" in capsys.readouterr().err

@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "jface.cli._mesh",
     "jface.cli._faces",
     "jface.cli._wrinkles",
+    "jface.cli._fit",
 )
 
 

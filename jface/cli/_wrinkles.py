@@ -1,4 +1,5 @@
-"""``jface wrinkles``: pore sampling, pore graph and trail simulation (Weiss et al. 2023, §3.1)."""
+"""``jface wrinkles``: pore sampling, pore graph and trail simulation (§3.1 of Weiss et al.
+2023), drawing displacement maps (§3.2, §5) and extraction from coarse scans (§4.1)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,29 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jface.io import provenance, read_map, save_arrays, write_json, write_png
-from jface.wrinkles import WrinkleParams, build_graph, load_params, sample_pores, simulate
+from jface.io import (
+    provenance,
+    read_map,
+    read_mesh,
+    save_arrays,
+    write_exr,
+    write_json,
+    write_mesh,
+    write_png,
+)
+from jface.render import shade
+from jface.wrinkles import (
+    WrinkleParams,
+    blend_with_scan,
+    build_graph,
+    extract_orientation,
+    find_pores,
+    load_params,
+    sample_pores,
+    save_params,
+    simulate,
+    synthesize,
+)
 
 _OVERRIDES = ("d", "theta", "s", "dist", "cont", "sim", "cross", "deposit", "decay")
 
@@ -39,6 +61,41 @@ def register(subparsers) -> None:
     sim.add_argument("--size", type=int, default=1024, help="PNG size in pixels")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     sim.set_defaults(run=_simulate)
+
+    ren = sub.add_parser(
+        "render",
+        help="simulate and draw a multi-level micro-wrinkle displacement map (EXR + shaded PNG), "
+        "optionally blended with a scan's displacement and applied to a mesh",
+    )
+    ren.add_argument("--params", required=True, help="JSON file of WrinkleParams levels")
+    ren.add_argument("--out", required=True, help="output EXR (PNG and mesh beside it)")
+    ren.add_argument("--size", type=int, default=1024, help="map side in pixels (16 to 16384)")
+    ren.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    ren.add_argument("--base", help="scan displacement EXR (one channel) to blend with (§5)")
+    ren.add_argument("--pores", help="pores JSON from 'jface wrinkles extract' seeding level 0")
+    ren.add_argument("--mesh", help="UV-mapped mesh (OBJ/PLY) to displace with the result")
+    ren.add_argument("--depth", type=float, default=0.001,
+                     help="mesh displacement per map unit, as a fraction of the mesh's "
+                     "bounding-box diagonal (default 0.001)")  # fmt: skip
+    ren.add_argument("--periodic", action="store_true", help="tileable map (torus)")
+    ren.add_argument("--steps", type=int, default=50, help="simulation steps per level")
+    ren.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, E))")
+    ren.set_defaults(run=_render)
+
+    ext = sub.add_parser(
+        "extract",
+        help="primary orientation per crop (α_θ texture) and pores from a coarse displacement map",
+    )
+    ext.add_argument("coarse", help="coarse displacement map (single-channel EXR, .npy, PNG)")
+    ext.add_argument("--out", required=True, help="output WrinkleParams JSON (θ texture)")
+    ext.add_argument("--pores-out", help="pores JSON (default: beside --out)")
+    ext.add_argument("--crop", type=int, default=128, help="crop side in pixels (default 128)")
+    ext.add_argument("--frequency", type=float, default=0.2, help="Gabor cycles per pixel")
+    ext.add_argument(
+        "--threshold", type=float, default=1.0, help="pore depth threshold (high-pass std units)"
+    )
+    ext.add_argument("--d", type=float, default=0.01, help="α_d of the written level")
+    ext.set_defaults(run=_extract)
 
 
 def _levels(args) -> list[WrinkleParams]:
@@ -122,6 +179,82 @@ def _simulate(args: argparse.Namespace) -> None:
     print(f"wrinkles: {counts} in {time.perf_counter() - start:.1f} s → {out}/")
 
 
+def _render(args: argparse.Namespace) -> None:
+    if not 16 <= args.size <= 16384:
+        raise ValueError(f"--size must be in [16, 16384], got {args.size}")
+    if args.steps < 0 or not args.depth > 0:
+        raise ValueError("--steps must be ≥ 0 and --depth > 0")
+    levels = load_params(args.params)
+    out = Path(args.out)
+    if out.suffix.lower() != ".exr":
+        raise ValueError(f"--out must name an .exr file, got {out}")
+    base = read_map(args.base) if args.base else None
+    if base is not None and base.shape != (args.size, args.size):
+        raise ValueError(f"--base is {base.shape}, expected ({args.size}, {args.size}) (--size)")
+    mesh = read_mesh(args.mesh) if args.mesh else None
+    if mesh is not None and mesh.uv is None:
+        raise ValueError(f"{args.mesh} has no UV coordinates; --mesh needs a UV-mapped mesh")
+    initial = _read_pores(args.pores, args.periodic) if args.pores else None
+    start = time.perf_counter()
+    with tqdm(total=1, desc="simulate + draw", leave=False):
+        syn = synthesize(
+            jax.random.key(args.seed), levels, (args.size, args.size), initial=initial,
+            periodic=args.periodic, n_steps=args.steps, n_samples=args.samples,
+        )  # fmt: skip
+    disp = syn.displacement if base is None else blend_with_scan(base, syn.displacement)
+    disp = np.asarray(disp)
+    inputs = tuple(x for x in (args.params, args.base, args.mesh, args.pores) if x)
+    meta = provenance(
+        seed=args.seed, levels=[p.to_dict() for p in levels], size=args.size, base=args.base,
+        periodic=args.periodic, steps=args.steps, samples=args.samples,
+    )  # fmt: skip
+    write_exr(out, disp, metadata=meta, protect=inputs)
+    write_png(out.with_suffix(".png"), shade(disp), metadata=meta)
+    if mesh is not None:
+        from jface.mesh import displace
+
+        diag = float(np.linalg.norm(np.ptp(np.asarray(mesh.vertices), axis=0)))
+        # maps are drawn with v down the rows; mesh UVs have v up
+        moved = displace(mesh, disp[::-1], scale=args.depth * diag)
+        comment = f"jface {meta['jface_version']} wrinkles render, seed {args.seed}"
+        write_mesh(out.with_suffix(".obj"), np.asarray(moved.vertices), np.asarray(moved.faces),
+                   uv=np.asarray(moved.uv), comment=comment, protect=inputs)  # fmt: skip
+    counts = ", ".join(f"{int(lv.pores.count)} pores" for lv in syn.levels)
+    print(f"wrinkles render: {counts}; {args.size}² in {time.perf_counter() - start:.1f} s → {out}")
+
+
+def _read_pores(path, periodic):
+    from jface.io import read_json
+    from jface.wrinkles import make_pores
+
+    data = read_json(path)
+    if not isinstance(data, dict) or data.get("kind") != "Pores":
+        raise ValueError(f"{path} is not a pores file (kind 'Pores') from 'jface wrinkles extract'")
+    positions = np.asarray(data["positions"], np.float32).reshape(-1, 2)
+    return make_pores(positions, periodic=periodic) if len(positions) else None
+
+
+def _extract(args: argparse.Namespace) -> None:
+    coarse = read_map(args.coarse)
+    start = time.perf_counter()
+    orient = extract_orientation(coarse, crop=args.crop, frequency=args.frequency)
+    pores = find_pores(coarse, threshold=args.threshold)
+    out = Path(args.out)
+    save_params(out, WrinkleParams(d=args.d, theta=np.asarray(orient.theta)))
+    pores_out = Path(args.pores_out) if args.pores_out else out.with_name(out.stem + "_pores.json")
+    n = int(pores.count)
+    write_json(
+        pores_out,
+        {"kind": "Pores", "positions": np.asarray(pores.positions)[:n].tolist(),
+         **provenance(source=str(args.coarse), crop=args.crop, frequency=args.frequency,
+                      threshold=args.threshold)},
+        protect=(args.coarse,),
+    )  # fmt: skip
+    gy, gx = orient.theta.shape
+    print(f"wrinkles extract: {gy}×{gx} orientations, {n} pores in "
+          f"{time.perf_counter() - start:.1f} s → {out}, {pores_out}")  # fmt: skip
+
+
 def demo(out_dir: Path, seed: int) -> None:
     """Pores and wrinkles on a tileable patch (a few seconds, mostly compilation)."""
     from jface.cli import main
@@ -130,4 +263,11 @@ def demo(out_dir: Path, seed: int) -> None:
         ["wrinkles", "simulate", "--out", str(Path(out_dir) / "wrinkles"), "--levels", "1",
          "--d", "0.015", "--theta", "0.6", "--s", "0.2", "--cross", "0.5", "--deposit", "0.4",
          "--periodic", "--size", "768", "--seed", str(seed)]
+    )  # fmt: skip
+    # and a drawn displacement map (§3.2) of the same parameters
+    params = Path(out_dir) / "wrinkles" / "params.json"
+    main(
+        ["wrinkles", "render", "--params", str(params), "--out",
+         str(Path(out_dir) / "wrinkles" / "displacement.exr"), "--size", "512", "--periodic",
+         "--seed", str(seed)]
     )  # fmt: skip

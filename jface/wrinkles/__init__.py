@@ -6,12 +6,35 @@ Pipeline of §3.1, one level::
     pores = sample_pores(key1, params.d)                  # maximal Poisson-disk pores
     graph = build_graph(pores)                            # symmetric kNN, half-edges, crossings
     w = simulate(key2, graph, params, n_steps=50)         # trail formation → edge weights W
+    disp = draw(key3, graph, w, params, (1024, 1024))     # §3.2: wrinkles + pores → displacement
 
 A finer level starts from the coarser pores: ``sample_pores(key, d2, initial=pores)``.
 All positions are ``(x, y)`` in the unit square; textures ``(H, W)`` cover it with ``x`` along
 columns and ``y`` along rows.
 """
 
+from jface.wrinkles._drawing import (
+    BETA,
+    N_HAT,
+    draw,
+    mellowmax,
+    pore_strength,
+    shape_function,
+)
+from jface.wrinkles._extraction import (
+    Orientations,
+    PoreCandidates,
+    binary_opening,
+    blend_with_scan,
+    extract_orientation,
+    extract_pores,
+    find_pores,
+    gabor_energy,
+    gabor_kernels,
+    gaussian_blur,
+    label_components,
+)
+from jface.wrinkles._fit import PAPER_NAMES, WrinkleFit, fit_wrinkles
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
 from jface.wrinkles._params import (
     PARAMETER_RANGES,
@@ -31,29 +54,53 @@ from jface.wrinkles._simulation import (
     orientation_density,
     simulate,
 )
+from jface.wrinkles._synthesis import Level, Synthesis, synthesize
 from jface.wrinkles._variation import perlin_variation
 
 __all__ = [
+    "BETA",
+    "N_HAT",
     "N_SAMPLES",
+    "PAPER_NAMES",
     "PARAMETER_RANGES",
     "GraphSpec",
+    "Level",
+    "Orientations",
+    "PoreCandidates",
     "PoreGraph",
     "Pores",
+    "Synthesis",
+    "WrinkleFit",
     "WrinkleParams",
     "angle_distance",
+    "binary_opening",
+    "blend_with_scan",
     "build_graph",
     "continuation_kernel",
     "default_capacity",
+    "draw",
+    "extract_orientation",
+    "extract_pores",
+    "find_pores",
+    "fit_wrinkles",
+    "gabor_energy",
+    "gabor_kernels",
+    "gaussian_blur",
     "graph_spec",
     "half_edge_scores",
+    "label_components",
     "load_params",
     "make_pores",
+    "mellowmax",
     "orientation_density",
     "params_from_json",
     "params_to_json",
     "perlin_variation",
+    "pore_strength",
     "sample_pores",
     "save_params",
+    "shape_function",
     "simulate",
     "stack_params",
+    "synthesize",
 ]

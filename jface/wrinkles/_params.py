@@ -41,7 +41,9 @@ PARAMETER_RANGES: dict[str, tuple[float, float]] = {
     "sigma": (0.01, math.pi),
     "sigma_cont": (0.01, math.pi),
     "dt": (1e-4, 1.0),
-    # drawing (§3.2), validated by the drawing code
+    # drawing (§3.2). Table 1 lists [0.001, 0.2] for the additive-noise frequency and [100, 3000]
+    # for its strength: evidently swapped (α_fperturb, a frequency, spans [100, 2000] and
+    # α_sperturb, a strength, [0.001, 3]), so the ranges are exchanged here.
     "wrinkle_width": (0.1, 0.6),
     "pore_width": (0.01, 0.5),
     "dmin": (0.001, 1.0),
@@ -50,8 +52,8 @@ PARAMETER_RANGES: dict[str, tuple[float, float]] = {
     "cushion": (0.0, 1.0),
     "fperturb": (100.0, 2000.0),
     "sperturb": (0.001, 3.0),
-    "fnoise": (0.001, 0.2),
-    "snoise": (100.0, 3000.0),
+    "fnoise": (100.0, 3000.0),
+    "snoise": (0.001, 0.2),
     "scale": (0.1, 0.9),
 }
 
@@ -71,12 +73,13 @@ def _field(default: float):
 
 
 class WrinkleParams(eqx.Module):
-    """Trail-simulation parameters of one level (Eq. 1–8 and Table 1 of Weiss et al. 2023).
+    """Simulation and drawing parameters of one level (Eq. 1–13 and Table 1 of Weiss et al. 2023).
 
     Every field is a scalar or an ``(H, W)`` texture over the unit square (looked up bilinearly at
     the pore for node terms, at the edge midpoint for ``deposit`` and ``decay``). Defaults are the
     paper's: the four reward/penalty terms 0, ``deposit`` 0.25, ``decay`` 0.5, σ = σ_cspread = 0.3,
-    Δt = 0.03.
+    Δt = 0.03. Table 1 gives no defaults for the drawing rows; ours draw moderately wide wrinkles
+    with visible pores, mild perturbation and little additive noise.
 
     Attributes:
         d: α_d, average pore distance (minimum distance of the Poisson-disk sampling) in UV units.
@@ -91,6 +94,18 @@ class WrinkleParams(eqx.Module):
         sigma: σ of Eq. 1.
         sigma_cont: σ_cspread of Eq. 4.
         dt: Δt of Eq. 7–8.
+        wrinkle_width: α_wrinkle-width; a wrinkle's valley half-width is ``W · wrinkle_width · d``
+            (UV units, so widths follow the pore distance).
+        pore_width: α_pore-width; a pore's radius is ``w_v · pore_width · d`` (w_v of Eq. 13).
+        dmin: α_dmin of Eq. 13, the least extra depth of a pore over its strongest wrinkle.
+        blend: α_blend of Eq. 13, from the strongest incident wrinkle (0) to their sum (1).
+        skew: α_skew, stretch of the pores along the primary orientation α_θ (1 = 3× longer).
+        cushion: α_cushion, fraction of the pore strength added to the wrinkles near their pores.
+        fperturb: α_fperturb, frequency (cells per UV unit) of the wrinkle-geometry perturbation.
+        sperturb: α_sperturb, its strength (offset of the centre line in wrinkle widths).
+        fnoise: α_fnoise, frequency (cells per UV unit) of the additive Perlin noise.
+        snoise: α_snoise, strength of the additive Perlin noise (displacement units).
+        scale: α_scale, global displacement scaling of the level.
     """
 
     d: Float[Array, "*shape"] = _field(0.01)
@@ -105,6 +120,17 @@ class WrinkleParams(eqx.Module):
     sigma: Float[Array, "*shape"] = _field(0.3)
     sigma_cont: Float[Array, "*shape"] = _field(0.3)
     dt: Float[Array, "*shape"] = _field(0.03)
+    wrinkle_width: Float[Array, "*shape"] = _field(0.3)
+    pore_width: Float[Array, "*shape"] = _field(0.15)
+    dmin: Float[Array, "*shape"] = _field(0.2)
+    blend: Float[Array, "*shape"] = _field(0.5)
+    skew: Float[Array, "*shape"] = _field(0.0)
+    cushion: Float[Array, "*shape"] = _field(0.0)
+    fperturb: Float[Array, "*shape"] = _field(400.0)
+    sperturb: Float[Array, "*shape"] = _field(0.3)
+    fnoise: Float[Array, "*shape"] = _field(1000.0)
+    snoise: Float[Array, "*shape"] = _field(0.01)
+    scale: Float[Array, "*shape"] = _field(0.5)
 
     def __check_init__(self):
         for name in _NAMES:

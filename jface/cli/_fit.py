@@ -1,0 +1,113 @@
+"""``jface fit``: fit wrinkle parameters to a measured patch (Weiss et al. 2023, §4.2)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from jface.io import provenance, read_map, write_json, write_png
+from jface.render import shade
+from jface.wrinkles import fit_wrinkles, params_to_json
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "fit",
+        help="fit two-level wrinkle parameters to a displacement patch (particle swarm + "
+        "gradient refinement); write the parameters (JSON), a convergence plot and a "
+        "side-by-side shaded PNG",
+    )
+    parser.add_argument("patch", help="displacement patch: EXR (one channel), .npy or grey PNG")
+    parser.add_argument("--out", required=True, help="output parameter file (.json)")
+    parser.add_argument("--channel", help="EXR channel when the file has several")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--agents", type=int, default=50, help="swarm agents (default: 50)")
+    parser.add_argument("--epochs", type=int, default=100, help="swarm epochs (default: 100)")
+    parser.add_argument("--trials", type=int, default=3, help="independent trials (default: 3)")
+    parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
+    parser.add_argument("--refine-steps", type=int, default=30, help="BFGS steps (0: none)")
+    parser.add_argument(
+        "--d-range", type=float, nargs=2, default=(0.02, 0.05), metavar=("LOW", "HIGH"),
+        help="search range of the pore distance α_d (default: 0.02 0.05)",
+    )  # fmt: skip
+    parser.set_defaults(run=_fit)
+
+
+def _fit(args: argparse.Namespace) -> None:
+    out = Path(args.out)
+    if out.suffix != ".json":
+        raise ValueError(f"--out must name a .json file, got {out}")
+    for name in ("agents", "epochs", "trials", "steps"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name} must be at least 1, got {getattr(args, name)}")
+    patch = read_map(args.patch, args.channel)
+    total = args.trials * args.epochs
+    with tqdm(total=total, desc="particle swarm", unit="epoch") as bar:
+
+        def progress(trial, epoch, best):
+            bar.n = trial * args.epochs + epoch
+            bar.set_postfix(trial=trial + 1, best=f"{best:.4g}", refresh=False)
+            bar.refresh()
+
+        fit = fit_wrinkles(
+            jax.random.key(args.seed),
+            patch,
+            d_range=tuple(args.d_range),
+            n_agents=args.agents,
+            n_epochs=args.epochs,
+            n_trials=args.trials,
+            n_steps=args.steps,
+            refine_steps=args.refine_steps,
+            progress=progress,
+        )
+    meta = provenance(
+        seed=args.seed, patch=str(args.patch), agents=args.agents, epochs=args.epochs,
+        trials=args.trials, steps=args.steps, refine_steps=args.refine_steps,
+        d_range=list(args.d_range),
+    )  # fmt: skip
+    document = json.loads(params_to_json(list(fit.levels)))
+    document |= {
+        "fit": {
+            "loss": float(fit.loss),
+            "swarm_loss": float(fit.swarm_loss),
+            "trial_losses": np.asarray(fit.swarm.trial_losses).tolist(),
+            "nonfinite_losses": np.asarray(fit.swarm.n_nonfinite).tolist(),
+            "names": list(fit.names),
+        },
+        "provenance": meta,
+    }
+    protect = (args.patch,)
+    write_json(out, document, protect=protect)
+    stem = out.with_suffix("")
+    history = np.asarray(fit.swarm.history)
+    write_png(f"{stem}_convergence.png", convergence_plot(history), metadata=meta, protect=protect)
+    pair = np.concatenate([shade(patch), np.ones((patch.shape[0], 8)), shade(fit.fitted)], 1)
+    write_png(f"{stem}_target_fit.png", pair, metadata=meta, protect=protect)
+    bad = int(np.sum(fit.swarm.n_nonfinite))
+    print(
+        f"loss {float(fit.swarm_loss):.4g} (swarm) → {float(fit.loss):.4g} (refined); "
+        f"{bad} non-finite evaluations; wrote {out}, {stem}_convergence.png, "
+        f"{stem}_target_fit.png"
+    )
+
+
+def convergence_plot(history: np.ndarray, height: int = 200, width: int = 400) -> np.ndarray:
+    """Grey image of the best-so-far loss per epoch (log scale), one dark curve per trial."""
+    image = np.ones((height, width))
+    finite = history[np.isfinite(history)]
+    if finite.size == 0:
+        return image
+    logs = np.log10(np.maximum(history, 1e-12))
+    lo, hi = np.log10(max(finite.min(), 1e-12)), np.log10(max(finite.max(), 1e-12))
+    span = max(hi - lo, 1e-6)
+    xs = np.linspace(0, width - 1, 4 * width)
+    for i, row in enumerate(logs):
+        curve = np.interp(xs / (width - 1) * (row.size - 1), np.arange(row.size), row)
+        ys = (height - 1) * (1 - (np.clip(curve, lo, hi) - lo) / span)
+        image[ys.round().astype(int), xs.round().astype(int)] = 0.6 * i / max(len(logs), 2)
+    return image

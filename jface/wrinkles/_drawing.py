@@ -1,0 +1,539 @@
+"""Drawing one level's wrinkles and pores into a displacement map (§3.2 of Weiss et al. 2023).
+
+Every wrinkle (edge with weight ``W > 0``) and every pore is a *primitive*: a segment from ``p0``
+to ``p0 + delta`` (a point for pores) with a valley half-width ``w`` and a strength ``s``. A pixel
+at distance ``x · w`` from the (perturbed) centre line receives the fragment ``s_i = s · S(x)``
+with the shape function of Eq. 9; fragments are blended with the modified mellowmax of
+Eq. 10–11. The wrinkle geometry is perturbed like the paper's vertex shader: the centre line's
+vertices (``N_VERTICES`` along the wrinkle) move along the normal by multi-octave Perlin noise and
+the offset is interpolated linearly in between, which is the exact inverse of displacing the
+band's vertices.
+
+The rasteriser bins primitives to square screen tiles (each primitive to the at most
+``span × span`` tiles its bounding box touches, sorted by tile), then evaluates each tile's pixels
+against its primitives in ``passes`` chunks of ``capacity`` with the blend accumulated additively
+(as in the paper's three-channel framebuffer, with a running maximum for float32 range), so any
+resolution works with memory bounded by the tile batch.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from jface import _checks
+from jface.noise import _fractal, _octave
+from jface.wrinkles._graph import PoreGraph
+from jface.wrinkles._params import WrinkleParams
+from jface.wrinkles._textures import at
+
+BETA = 20.0  #: β of Eq. 10
+N_HAT = 16  #: N̂_f of Eq. 10, fragments expected on top of each other
+N_VERTICES = 8  #: perturbed centre-line vertices per wrinkle
+_PERTURB_OCTAVES = 3
+_MAX_SIDE = 65536  # largest map side drawn in one call (16k maps are drawn in bands)
+
+
+def shape_function(x: ArrayLike, *, bulge: bool = True) -> Float[Array, "..."]:
+    """Wrinkle profile of Eq. 9 at distance ``x`` (in valley half-widths) from the centre line.
+
+    ``S_bulge(x) = (x − 3)² (x − 1) / 9`` on ``[0, 3]`` (valley on ``[0, 1]``, bulge on
+    ``[1, 3]``) or ``S_no-bulge(x) = −(1 − 2x/3)³`` on ``[0, 1.5]``; zero outside the domain.
+    """
+    x = jnp.abs(jnp.asarray(x, jnp.float32))
+    if bulge:
+        return jnp.where(x < 3.0, (x - 3.0) ** 2 * (x - 1.0) / 9.0, 0.0)
+    return jnp.where(x < 1.5, -((1.0 - 2.0 * x / 3.0) ** 3), 0.0)
+
+
+def _extent(bulge: bool) -> float:
+    return 3.0 if bulge else 1.5
+
+
+def _mm_finish(m, total, n, beta, n_hat):
+    """Eq. 10 from a running maximum ``m`` ≥ 0, ``total = Σ exp(β (x_i − m))`` and count ``n``."""
+    n_hat_f = jnp.maximum(jnp.asarray(n_hat, total.dtype), n)  # standard mellowmax when n > N̂
+    pad = (n_hat_f - n) * jnp.exp(-beta * m)  # the N̂ − N_f implicit zero fragments
+    return m + (jnp.log(total + pad) - jnp.log(n_hat_f)) / beta
+
+
+def mellowmax(
+    x: ArrayLike,
+    mask: ArrayLike | None = None,
+    *,
+    beta: float = BETA,
+    n_hat: int = N_HAT,
+) -> Float[Array, "..."]:
+    """Modified mellowmax of Eq. 10 over the last axis (the fragments of one pixel).
+
+    ``(1/β) log((N̂ − N_f + Σ exp(β x_i)) / N̂)`` with ``N_f`` the number of (unmasked)
+    fragments; when ``N_f > N̂`` it is the standard mellowmax (``N̂ = N_f``). ``n_hat=1`` gives
+    the standard mellowmax, which equals the value for one fragment; the modified one equals the
+    standard mellowmax of the fragments padded with zeros to ``N̂``.
+
+    Args:
+        x: ``(..., k)`` fragment values.
+        mask: optional ``(..., k)`` booleans, the fragments present (default all).
+        beta: β > 0.
+        n_hat: N̂_f ≥ 1.
+    """
+    xs = _checks.float_array(x, "x", min_ndim=1, dtype=jnp.float32)
+    beta = _checks.real(beta, "beta", low=0.0, open_low=True)
+    n_hat = _checks.integer(n_hat, "n_hat", low=1)
+    present = jnp.ones(xs.shape, bool) if mask is None else jnp.asarray(mask, bool)
+    if present.shape != xs.shape:
+        raise ValueError(f"mask must have the shape of x {xs.shape}, got {present.shape}")
+    m = jnp.maximum(jnp.max(jnp.where(present, xs, -jnp.inf), axis=-1), 0.0)
+    total = jnp.sum(jnp.where(present, jnp.exp(beta * (xs - m[..., None])), 0.0), axis=-1)
+    n = jnp.sum(present, axis=-1).astype(jnp.float32)
+    return _mm_finish(m, total, n, beta, n_hat)
+
+
+class Primitives(NamedTuple):
+    """Wrinkles and pores of one level, as segments to rasterise (UV units).
+
+    Attributes:
+        p0: ``(m, 2)`` start point.
+        delta: ``(m, 2)`` vector to the end point (zero for pores).
+        width: ``(m,)`` valley half-width ``w``.
+        strength: ``(m,)`` depth ``s`` (Eq. 9 is scaled by it).
+        cushion: ``(m, 2)`` extra strength at the start and end (cushioning, falls off to zero at
+            the middle).
+        offsets: ``(m, N_VERTICES)`` centre-line offsets along the normal (perturbation).
+        axis: ``(m, 2)`` unit axis of the pore skew.
+        stretch: ``(m,)`` stretch factor along ``axis`` (1 = round).
+        valid: ``(m,)`` primitive is drawn.
+    """
+
+    p0: Float[Array, "m 2"]
+    delta: Float[Array, "m 2"]
+    width: Float[Array, " m"]
+    strength: Float[Array, " m"]
+    cushion: Float[Array, "m 2"]
+    offsets: Float[Array, "m v"]
+    axis: Float[Array, "m 2"]
+    stretch: Float[Array, " m"]
+    valid: Bool[Array, " m"]
+
+
+def pore_strength(
+    graph: PoreGraph, weights: Float[Array, " E"], dmin: ArrayLike, blend: ArrayLike
+) -> Float[Array, " n"]:
+    """Strength ``w_v`` of every pore from its incident edge weights (Eq. 12–13)."""
+    w = jnp.where(graph.half_mask, weights[graph.half_edge], 0.0)
+    w_max = jnp.max(w, axis=-1)
+    w_sum = jnp.sum(w, axis=-1)
+    return jnp.maximum(w_max + dmin, w_max + blend * (w_sum - w_max))
+
+
+@jax.jit
+def primitives(key: jax.Array, graph: PoreGraph, weights, params: WrinkleParams) -> Primitives:
+    """The wrinkle and pore primitives of one level (traced-friendly, no validation)."""
+    per = graph.periodic
+    pos = graph.positions
+    a = pos[graph.edge_nodes[:, 0]]
+    mid = a + 0.5 * graph.edge_delta
+    mid = jnp.mod(mid, 1.0) if per else mid
+
+    # pores (Eq. 12-13): width w_v · α_pore-width · α_d, skewed along α_θ
+    w_v = pore_strength(graph, weights, at(params.dmin, pos, periodic=per),
+                        at(params.blend, pos, periodic=per))  # fmt: skip
+    d_v = at(params.d, pos, periodic=per)
+    theta_v = at(params.theta, pos, periodic=per)
+    pore_valid = graph.node_mask
+    n = pos.shape[0]
+
+    # wrinkles: half-width W · α_wrinkle-width · α_d, strength W, cushion from the end pores
+    d_e = at(params.d, mid, periodic=per)
+    width_e = weights * at(params.wrinkle_width, mid, periodic=per) * d_e
+    cushion = at(params.cushion, mid, periodic=per)[:, None] * w_v[graph.edge_nodes]
+    edge_valid = graph.edge_mask & (weights > 0)
+
+    # perturbation (Fig. 7a, 9): Perlin noise at the centre-line vertices, offset along the normal
+    t = jnp.linspace(0.0, 1.0, N_VERTICES, dtype=jnp.float32)
+    verts = a[:, None, :] + t[None, :, None] * graph.edge_delta[:, None, :]
+    freq = at(params.fperturb, mid, periodic=per)[:, None]
+    noise = _fractal(key, verts, freq, _PERTURB_OCTAVES, 0.5, 2.0, False)
+    offsets = (at(params.sperturb, mid, periodic=per) * width_e)[:, None] * noise
+
+    e = weights.shape[0]
+    zeros2 = jnp.zeros((n, 2), jnp.float32)
+    axis_v = jnp.stack([jnp.cos(theta_v), jnp.sin(theta_v)], axis=-1)
+    return Primitives(
+        p0=jnp.concatenate([a, pos]),
+        delta=jnp.concatenate([graph.edge_delta, zeros2]),
+        width=jnp.concatenate([width_e, w_v * at(params.pore_width, pos, periodic=per) * d_v]),
+        strength=jnp.concatenate([weights, w_v]),
+        cushion=jnp.concatenate([cushion, zeros2]),
+        offsets=jnp.concatenate([offsets, jnp.zeros((n, N_VERTICES), jnp.float32)]),
+        axis=jnp.concatenate([jnp.tile(jnp.array([[1.0, 0.0]], jnp.float32), (e, 1)), axis_v]),
+        stretch=jnp.concatenate(
+            [jnp.ones(e, jnp.float32), 1.0 + 2.0 * at(params.skew, pos, periodic=per)]
+        ),
+        valid=jnp.concatenate([edge_valid, pore_valid]),
+    )
+
+
+class Bins(NamedTuple):
+    """Primitives sorted by screen tile: tile ``t`` owns ``order[start[t]:][:count[t]]``."""
+
+    order: Int[Array, " k"]
+    start: Int[Array, " g"]
+    count: Int[Array, " g"]
+    overflow: Bool[Array, ""]
+
+
+def _bbox(prims: Primitives, bulge: bool):
+    """Per primitive UV bounding box ``(lo, hi)`` of everything it can touch."""
+    reach = prims.width * _extent(bulge) * prims.stretch + jnp.max(jnp.abs(prims.offsets), -1)
+    end = prims.p0 + prims.delta
+    lo = jnp.minimum(prims.p0, end) - reach[:, None]
+    hi = jnp.maximum(prims.p0, end) + reach[:, None]
+    return lo, hi
+
+
+def _tile_range(lo, hi, shape, tile):
+    """First tile index and number of tiles per axis ``(x, y)`` of every bounding box."""
+    size = jnp.array([shape[1], shape[0]], jnp.float32)
+    first = jnp.floor(lo * size / tile).astype(jnp.int32)
+    last = jnp.floor(hi * size / tile).astype(jnp.int32)
+    return first, last - first + 1
+
+
+def needed_span(
+    prims: Primitives, shape: tuple[int, int], *, tile: int, bulge: bool, periodic: bool
+) -> int:
+    """Smallest ``span`` that bins these (concrete) primitives without overflow."""
+    first, n = _tile_range(*_bbox(prims, bulge), shape, tile)
+    grid = np.array([-(-shape[1] // tile), -(-shape[0] // tile)])
+    if periodic:
+        n = np.minimum(np.asarray(n), grid)
+    else:
+        last = np.minimum(np.asarray(first) + np.asarray(n) - 1, grid - 1)
+        n = last - np.maximum(np.asarray(first), 0) + 1
+    n = np.where(np.asarray(prims.valid)[:, None], np.asarray(n), 1)
+    return max(1, int(np.max(n, initial=1)))
+
+
+def bin_primitives(
+    prims: Primitives, shape: tuple[int, int], *, tile: int, span: int, bulge: bool,
+    periodic: bool,
+) -> Bins:  # fmt: skip
+    """Bin primitives to ``tile``-pixel screen tiles (each to ≤ ``span`` tiles per axis)."""
+    gy, gx = -(-shape[0] // tile), -(-shape[1] // tile)
+    first, n = _tile_range(*_bbox(prims, bulge), shape, tile)
+    grid = jnp.array([gx, gy], jnp.int32)
+    if periodic:  # a box wider than the map covers every tile once
+        n = jnp.minimum(n, grid)
+    else:  # clip to the image first: only visible tiles count
+        last = jnp.minimum(first + n - 1, grid - 1)
+        first = jnp.maximum(first, 0)
+        n = last - first + 1
+    overflow = jnp.any(prims.valid[:, None] & (n > span))
+    o = jnp.arange(span, dtype=jnp.int32)
+    tx = first[:, 0, None, None] + o[None, None, :]  # (m, 1, span)
+    ty = first[:, 1, None, None] + o[None, :, None]  # (m, span, 1)
+    ok = prims.valid[:, None, None] & (o[None, None, :] < n[:, 0, None, None])
+    ok = ok & (o[None, :, None] < n[:, 1, None, None])
+    if periodic:
+        tx, ty = jnp.mod(tx, gx), jnp.mod(ty, gy)
+    tile_id = jnp.where(ok, ty * gx + tx, gy * gx).reshape(-1)
+    prim_id = jnp.broadcast_to(
+        jnp.arange(prims.valid.shape[0], dtype=jnp.int32)[:, None, None], ok.shape
+    ).reshape(-1)
+    order = jnp.argsort(tile_id, stable=True)
+    count = jnp.bincount(tile_id, length=gy * gx + 1)[:-1].astype(jnp.int32)
+    start = (jnp.cumsum(count) - count).astype(jnp.int32)
+    return Bins(prim_id[order], start, count, overflow)
+
+
+def _fragments(prims: Primitives, q, periodic, bulge):
+    """Fragment values ``(P, K)`` of pixels ``q`` (P, 2) against primitives with (K, ...) leaves."""
+    rel = q[:, None, :] - prims.p0[None]
+    if periodic:
+        rel = rel - jnp.round(rel)
+    len2 = jnp.sum(prims.delta**2, -1)
+    safe_len2 = jnp.where(len2 > 0, len2, 1.0)
+    t = jnp.clip(jnp.sum(rel * prims.delta[None], -1) / safe_len2, 0.0, 1.0)
+    perp = rel - t[..., None] * prims.delta[None]
+    # perturbed centre line: offset interpolated between the vertices, along the normal
+    normal = jnp.stack([-prims.delta[:, 1], prims.delta[:, 0]], -1) / jnp.sqrt(safe_len2)[:, None]
+    u = t * (N_VERTICES - 1)
+    j = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, N_VERTICES - 2)
+    f = u - j.astype(jnp.float32)
+    o0 = jnp.take_along_axis(prims.offsets[None], j[..., None], -1)[..., 0]
+    o1 = jnp.take_along_axis(prims.offsets[None], j[..., None] + 1, -1)[..., 0]
+    perp = perp - ((1.0 - f) * o0 + f * o1)[..., None] * normal[None]
+    # pore skew: distances along the primary orientation shrink by the stretch factor
+    along = jnp.sum(perp * prims.axis[None], -1)
+    across = perp[..., 0] * prims.axis[None, :, 1] - perp[..., 1] * prims.axis[None, :, 0]
+    dist2 = (along / prims.stretch[None]) ** 2 + across**2
+    width = jnp.where(prims.valid, prims.width, 1.0)
+    x = jnp.sqrt(dist2 + 1e-14) / width[None]
+    covered = prims.valid[None] & (x < _extent(bulge))
+    # cushioning: a fraction of the pore strength, falling off smoothly to zero at the middle
+    fall = 1.0 - _smoothstep(jnp.minimum(t, 0.5) * 2.0)
+    fall_end = 1.0 - _smoothstep(jnp.minimum(1.0 - t, 0.5) * 2.0)
+    strength = prims.strength[None] + prims.cushion[None, :, 0] * fall
+    strength = strength + prims.cushion[None, :, 1] * fall_end
+    return strength * shape_function(x, bulge=bulge), covered
+
+
+def _smoothstep(x):
+    return x * x * (3.0 - 2.0 * x)
+
+
+class _Acc(NamedTuple):
+    m_valley: Array
+    s_valley: Array
+    m_bulge: Array
+    s_bulge: Array
+    n: Array
+
+
+def _accumulate(acc: _Acc, s, covered, beta):
+    def side(m, total, x):
+        x = jnp.where(covered, x, 0.0)
+        m_new = jnp.maximum(m, jnp.max(x, -1))
+        add = jnp.sum(jnp.where(covered, jnp.exp(beta * (x - m_new[:, None])), 0.0), -1)
+        return m_new, total * jnp.exp(beta * (m - m_new)) + add
+
+    mv, sv = side(acc.m_valley, acc.s_valley, jnp.maximum(-s, 0.0))
+    mb, sb = side(acc.m_bulge, acc.s_bulge, jnp.maximum(s, 0.0))
+    return _Acc(mv, sv, mb, sb, acc.n + jnp.sum(covered, -1).astype(jnp.float32))
+
+
+def _render_tiles(
+    prims, bins, tile_ids, shape, *, tile, capacity, passes, bulge, periodic, beta, n_hat
+):
+    """Blended displacement (Eq. 11) of the given tiles, ``(len(tile_ids), tile, tile)``."""
+    gx = -(-shape[1] // tile)
+    h, w = shape
+    offs = jnp.arange(tile, dtype=jnp.float32)
+
+    def one(tid):
+        ty, tx = tid // gx, tid % gx
+        ys = ((ty * tile).astype(jnp.float32) + offs + 0.5) / h
+        xs = ((tx * tile).astype(jnp.float32) + offs + 0.5) / w
+        q = jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+        count, start = bins.count[tid], bins.start[tid]
+        zero = jnp.zeros(tile * tile, jnp.float32)
+
+        def body(acc, c):
+            slot = c * capacity + jnp.arange(capacity, dtype=jnp.int32)
+            idx = bins.order[jnp.minimum(start + slot, bins.order.shape[0] - 1)]
+            chunk = jax.tree.map(lambda a: a[idx], prims)
+            chunk = chunk._replace(valid=chunk.valid & (slot < count))
+            s, covered = _fragments(chunk, q, periodic, bulge)
+            return _accumulate(acc, s, covered, beta), None
+
+        # a static number of passes (not a while loop) keeps the map reverse-differentiable
+        acc, _ = lax.scan(
+            body, _Acc(zero, zero, zero, zero, zero), jnp.arange(passes, dtype=jnp.int32)
+        )
+        valley = _mm_finish(acc.m_valley, acc.s_valley, acc.n, beta, n_hat)
+        bulge_ = _mm_finish(acc.m_bulge, acc.s_bulge, acc.n, beta, n_hat)
+        return (bulge_ - valley).reshape(tile, tile)
+
+    batch = max(1, (1 << 20) // (tile * tile * capacity))
+    return lax.map(one, tile_ids, batch_size=min(batch, tile_ids.shape[0]))
+
+
+def _assemble(tiles, shape, tile):
+    gy, gx = -(-shape[0] // tile), -(-shape[1] // tile)
+    img = tiles.reshape(gy, gx, tile, tile).transpose(0, 2, 1, 3).reshape(gy * tile, gx * tile)
+    return img[: shape[0], : shape[1]]
+
+
+def _pixel_uv(shape, rows=None):
+    h, w = shape
+    rows = jnp.arange(h) if rows is None else rows
+    y = (rows.astype(jnp.float32) + 0.5) / h
+    x = (jnp.arange(w, dtype=jnp.float32) + 0.5) / w
+    return jnp.stack(jnp.meshgrid(x, y, indexing="xy"), -1)
+
+
+def _finish(key, blended, params, uv, periodic):
+    """Additive Perlin noise (α_fnoise, α_snoise) and global scaling α_scale of one level."""
+    freq = at(params.fnoise, uv, periodic=periodic)
+    if periodic:
+        freq = jnp.maximum(jnp.round(freq), 1.0)
+    period = jnp.round(freq).astype(jnp.int32) if periodic else jnp.int32(0)
+    noise = _noise(key, uv, freq, period)
+    snoise = at(params.snoise, uv, periodic=periodic)
+    return at(params.scale, uv, periodic=periodic) * (blended + snoise * noise)
+
+
+def _noise(key, uv, freq, period):
+    seeds = jax.random.bits(key, (2,), dtype=jnp.uint32)
+    total = _octave(uv, freq, seeds[0], period) + 0.5 * _octave(uv, 2 * freq, seeds[1], 2 * period)
+    return total / 1.5
+
+
+class DrawOptions(NamedTuple):
+    """Static settings of the rasteriser (see :func:`draw`)."""
+
+    bulge: bool = True
+    tile: int | None = None
+    capacity: int = 16
+    span: int | None = None
+    passes: int | None = None
+    beta: float = BETA
+    n_hat: int = N_HAT
+
+
+def _check_draw(key, graph, weights, params, shape, opts: DrawOptions):
+    key = _checks.key(key)
+    if not isinstance(graph, PoreGraph):
+        raise TypeError(f"graph must be a PoreGraph, got {_checks.describe(graph)}")
+    if not isinstance(params, WrinkleParams):
+        raise TypeError(f"params must be WrinkleParams, got {_checks.describe(params)}")
+    if graph.positions.ndim != 2:
+        raise ValueError(
+            f"draw takes one graph (vmap for a batch), got positions {graph.positions.shape}"
+        )
+    n_edges = graph.edge_mask.shape[-1]
+    w = _checks.float_array(weights, "weights", ndim=1, dtype=jnp.float32)
+    if w.shape[0] != n_edges:
+        raise ValueError(f"weights must have shape ({n_edges},), got {_checks.describe(w)}")
+    if not _checks.is_traced(w) and bool(np.any((np.asarray(w) < 0) | (np.asarray(w) > 1))):
+        raise ValueError("weights must lie in [0, 1]")
+    if not (isinstance(shape, tuple | list) and len(shape) == 2):
+        raise TypeError(f"shape must be a pair (H, W), got {_checks.describe(shape)}")
+    shape = (
+        _checks.integer(shape[0], "shape[0]", low=1, high=_MAX_SIDE),
+        _checks.integer(shape[1], "shape[1]", low=1, high=_MAX_SIDE),
+    )
+    if opts.tile is None:  # periodic binning wraps by whole tiles: the tile must divide the map
+        side = math.gcd(*shape) if graph.periodic else 32
+        tile = max(t for t in range(1, 33) if side % t == 0)
+    else:
+        tile = _checks.integer(opts.tile, "tile", low=1, high=1024)
+    if graph.periodic and (shape[0] % tile or shape[1] % tile):
+        raise ValueError(f"tile must divide both sides of a periodic map {shape}, got {tile}")
+    capacity = _checks.integer(opts.capacity, "capacity", low=1, high=4096)
+    for name in ("span", "passes"):
+        if getattr(opts, name) is not None:
+            _checks.integer(getattr(opts, name), name, low=1, high=4096)
+    _checks.real(opts.beta, "beta", low=0.0, open_low=True)
+    _checks.integer(opts.n_hat, "n_hat", low=1)
+    return key, w, shape, opts._replace(tile=tile, capacity=capacity)
+
+
+def draw(
+    key: jax.Array,
+    graph: PoreGraph,
+    weights: ArrayLike,
+    params: WrinkleParams,
+    shape: tuple[int, int],
+    *,
+    bulge: bool = True,
+    tile: int | None = None,
+    capacity: int = 16,
+    span: int | None = None,
+    passes: int | None = None,
+    beta: float = BETA,
+    n_hat: int = N_HAT,
+) -> Float[Array, "H W"]:
+    """One level's displacement map: wrinkles, pores and perturbation (§3.2, Eq. 9–13).
+
+    Wrinkles are bands between their pores with valley half-width ``W · α_wrinkle-width · α_d``
+    and depth ``W`` shaped by Eq. 9; pores have strength ``w_v`` (Eq. 12–13), radius
+    ``w_v · α_pore-width · α_d``, are stretched along α_θ by ``1 + 2 α_skew`` and pass
+    ``α_cushion · w_v`` back onto their wrinkles (falling off to zero at the wrinkle's middle);
+    the centre lines are perturbed by Perlin noise (α_fperturb, α_sperturb); fragments blend with
+    the modified mellowmax (Eq. 10–11); additive Perlin noise (α_fnoise, α_snoise) and the global
+    α_scale finish the level. Parameters may be textures (looked up at edge midpoints, pores or
+    pixels). Valleys are negative.
+
+    Pure and jit-able for static ``shape`` and options; ``vmap``-able over a batch of
+    ``(key, graph, weights, params)`` with the graphs' static capacities equal; differentiable
+    with respect to the continuous drawing fields (graph and weights fixed).
+
+    Args:
+        key: a ``jax.random.key`` (perturbation and additive noise).
+        graph: the level's pore graph (:func:`build_graph`).
+        weights: ``(E,)`` edge weights ``W`` in ``[0, 1]`` (:func:`simulate`).
+        params: the level's :class:`WrinkleParams`.
+        shape: ``(H, W)`` of the map covering the unit square (static).
+        bulge: Eq. 9's "ours, bulge" profile (True) or "ours, no bulge" (the paper's finest level).
+        tile: screen-tile side in pixels (static; performance only). Default 32, or for a
+            periodic graph the largest divisor ≤ 32 of both sides (periodic maps need one).
+        capacity: primitives evaluated per tile and pass (static; performance only).
+        span: most tiles per axis a primitive's bounding box may touch (static).
+        passes: passes per tile, so a tile holds up to ``passes · capacity`` primitives (static).
+            ``span`` and ``passes`` default to the exact need when the inputs are concrete, else
+            (under jit/vmap) to values that always suffice but evaluate every primitive in every
+            tile: pass them (e.g. measured on one concrete agent) for speed. Exceeding either
+            raises an error (at run time under jit) rather than drawing a wrong map.
+        beta, n_hat: β and N̂_f of Eq. 10.
+
+    Returns:
+        ``(H, W)`` float32 displacement.
+
+    Raises:
+        TypeError/ValueError: wrong types, sizes ≤ 0 or above 65536, weights outside [0, 1], a
+            tile that does not divide a periodic map.
+    """
+    opts = DrawOptions(bulge, tile, capacity, span, passes, beta, n_hat)
+    key, w, shape, opts = _check_draw(key, graph, weights, params, shape, opts)
+    k_perturb, k_noise = jax.random.split(key)
+    prims = primitives(k_perturb, graph, w, params)
+    opts = _static_sizes(prims, shape, opts, graph.periodic)
+    return _draw(k_noise, prims, params, shape, opts, graph.periodic)
+
+
+def _static_sizes(prims, shape, opts: DrawOptions, periodic: bool) -> DrawOptions:
+    """Fill in ``span`` and ``passes``: exact for concrete primitives, else always sufficient."""
+    concrete = not any(_checks.is_traced(x) for x in jax.tree.leaves(prims))
+    span, passes = opts.span, opts.passes
+    if span is None:
+        span = max(-(-shape[0] // opts.tile), -(-shape[1] // opts.tile))
+        if concrete:
+            span = needed_span(prims, shape, tile=opts.tile, bulge=opts.bulge, periodic=periodic)
+    if passes is None:
+        passes = -(-prims.valid.shape[0] // opts.capacity)
+        if concrete:
+            bins = _bin(prims, shape, opts._replace(span=span), periodic)
+            passes = max(1, -(-int(jnp.max(bins.count)) // opts.capacity))
+    return opts._replace(span=span, passes=passes)
+
+
+@eqx.filter_jit
+def _bin(prims, shape, opts, periodic):
+    return bin_primitives(
+        prims, shape, tile=opts.tile, span=opts.span, bulge=opts.bulge, periodic=periodic
+    )
+
+
+@eqx.filter_jit
+def _draw(key, prims, params, shape, opts, periodic):
+    bins = bin_primitives(
+        prims, shape, tile=opts.tile, span=opts.span, bulge=opts.bulge, periodic=periodic
+    )
+    g = bins.count.shape[0]
+    tiles = _render_tiles(
+        prims, bins, jnp.arange(g, dtype=jnp.int32), shape, tile=opts.tile, capacity=opts.capacity,
+        passes=opts.passes, bulge=opts.bulge, periodic=periodic, beta=opts.beta, n_hat=opts.n_hat,
+    )  # fmt: skip
+    blended = _assemble(tiles, shape, opts.tile)
+    out = _finish(key, blended, params, _pixel_uv(shape), periodic)
+    out = eqx.error_if(
+        out,
+        bins.overflow,
+        f"a wrinkle or pore touches more than span={opts.span} tiles per axis; pass a larger "
+        "span (or a larger tile) to draw",
+    )
+    return eqx.error_if(
+        out,
+        jnp.max(bins.count) > opts.passes * opts.capacity,
+        f"a tile holds more than passes·capacity={opts.passes * opts.capacity} wrinkles and "
+        "pores; pass larger passes or capacity (or a smaller tile) to draw",
+    )

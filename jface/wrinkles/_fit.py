@@ -1,0 +1,374 @@
+"""Fitting simulation and drawing parameters to a measured patch (§4.2 of Weiss et al. 2023).
+
+Two levels; α_d of level 1 is free and level 2 uses half of it; per level the paper's twelve
+parameters (α_θ cyclic) and one additive Perlin noise level (α_fnoise, α_snoise, drawn with level
+1). A particle swarm (:func:`jface.optim.pso`, lbest, Random+Absorb) minimises the VGG-free texture
+loss (:func:`jface.optim.texture_distance`) between the synthesised map and the patch. Agents whose
+α_d differ run in one ``vmap``: pores and graphs have the static capacities of the densest α_d in
+the search range. Each trial evaluates every agent with the same simulation key (common random
+numbers), so the loss is a deterministic function of the parameters.
+
+Beyond the paper, the continuous drawing parameters of the best agent are then refined by
+gradient (optimistix BFGS) through the differentiable drawing with the simulation result held
+fixed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from jface import _checks
+from jface.optim import PSOResult, pso, texture_distance, texture_stats
+from jface.optim._texture import _stats
+from jface.wrinkles._drawing import bin_primitives, draw, primitives
+from jface.wrinkles._graph import build_graph, graph_spec
+from jface.wrinkles._params import PARAMETER_RANGES, WrinkleParams
+from jface.wrinkles._sampling import sample_pores
+from jface.wrinkles._simulation import simulate
+
+#: Per-level parameters the paper fits (§4.2.2), besides α_d and one noise level.
+LEVEL_NAMES = (
+    "theta", "s", "cont", "deposit", "dist", "cross",
+    "wrinkle_width", "pore_width", "blend", "skew", "cushion", "sperturb",
+)  # fmt: skip
+#: The paper's full set: α_d (level 1), ``"<level>.<name>"`` per level, one noise level.
+PAPER_NAMES = ("d", *(f"{lv}.{n}" for lv in (1, 2) for n in LEVEL_NAMES), "fnoise", "snoise")
+#: Drawing parameters refined by gradient after the swarm (continuous in the drawing).
+DRAWING_NAMES = ("wrinkle_width", "pore_width", "blend", "skew", "cushion", "sperturb")
+#: Default α_d search range: Table 1 allows [0.001, 0.05]; a patch holds a few hundred pores.
+D_RANGE = (0.02, 0.05)
+
+
+class WrinkleFit(eqx.Module):
+    """Result of :func:`fit_wrinkles`.
+
+    Attributes:
+        levels: the fitted ``(level 1, level 2)`` parameters (after refinement).
+        loss: texture loss of ``levels``.
+        swarm_loss: texture loss of the swarm's best, before the gradient refinement.
+        swarm: the :class:`jface.optim.PSOResult` (history for a convergence plot).
+        names: the fitted parameter names, in the order of ``swarm.params`` (static).
+        sim_key: the simulation key of the best trial (reproduces ``fitted``).
+        fitted: the synthesised map of ``levels``, ``(H, W)``.
+    """
+
+    levels: tuple[WrinkleParams, WrinkleParams]
+    loss: Float[Array, ""]
+    swarm_loss: Float[Array, ""]
+    swarm: PSOResult
+    names: tuple[str, ...] = eqx.field(static=True)
+    sim_key: Array
+    fitted: Float[Array, "H W"]
+
+
+class _Layout(eqx.Module):
+    """Static sizes that let agents with different α_d share one compiled pipeline."""
+
+    shape: tuple[int, int] = eqx.field(static=True)
+    ranges: tuple[tuple[float, float], tuple[float, float]] = eqx.field(static=True)
+    capacities: tuple[int, int] = eqx.field(static=True)
+    specs: tuple[Any, Any] = eqx.field(static=True)
+    n_steps: int = eqx.field(static=True)
+
+
+def _layout(key, shape, d_range, n_steps) -> _Layout:
+    lo, hi = d_range
+    ranges = ((lo, hi), (lo / 2, hi / 2))
+    dense1 = sample_pores(key, lo, periodic=True, radius_range=ranges[0])
+    dense2 = sample_pores(key, lo / 2, initial=dense1, periodic=True, radius_range=ranges[1])
+    specs = tuple(
+        graph_spec(p, radius_range=r, max_degree=16, max_crossings=16)
+        for p, r in zip((dense1, dense2), ranges, strict=True)
+    )
+    # 10 % headroom: another key may pack a few more pores than the reference draw
+    caps = (math.ceil(1.1 * dense1.capacity), math.ceil(1.1 * dense2.capacity))
+    return _Layout(tuple(shape), ranges, caps, specs, n_steps)
+
+
+def _simulate(key, levels: tuple[WrinkleParams, WrinkleParams], layout: _Layout):
+    """Pores, graphs and trail weights of both levels (level 2 starts from level 1's pores)."""
+    k = jax.random.split(key, 4)
+    p1, p2 = levels
+    pores1 = sample_pores(
+        k[0], p1.d, capacity=layout.capacities[0], radius_range=layout.ranges[0], periodic=True
+    )
+    pores2 = sample_pores(
+        k[1], p2.d, capacity=layout.capacities[1], initial=pores1,
+        radius_range=layout.ranges[1], periodic=True,
+    )  # fmt: skip
+    g1, g2 = build_graph(pores1, layout.specs[0]), build_graph(pores2, layout.specs[1])
+    return (
+        (g1, simulate(k[2], g1, p1, n_steps=layout.n_steps)),
+        (g2, simulate(k[3], g2, p2, n_steps=layout.n_steps)),
+    )
+
+
+_SPAN = 4  # tiles per axis a primitive may touch in the swarm's draws (static)
+
+
+def _draw(key, sims, levels, shape) -> Float[Array, "H W"]:
+    """Both levels drawn and summed (the finest with the no-bulge profile, as in the paper)."""
+    return _draw_checked(key, sims, levels, shape)[0]
+
+
+def _draw_checked(key, sims, levels, shape) -> tuple[Float[Array, "H W"], Array]:
+    """Like :func:`_draw`, plus whether some primitive was too large to draw.
+
+    Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into one huge pore) can make a
+    primitive exceed the drawing's static tile span, which would abort the whole swarm. Such a
+    level is drawn without wrinkles (a safe stand-in) and flagged, so its loss becomes NaN, which
+    the swarm contains and counts.
+    """
+    k1, k2 = jax.random.split(jax.random.fold_in(key, 7))
+    out, bad = jnp.zeros(shape, jnp.float32), jnp.zeros((), bool)
+    for k, (graph, w), params, bulge in zip((k1, k2), sims, levels, (True, False), strict=True):
+        prims = primitives(jax.random.split(k)[0], graph, w, params)
+        overflow = bin_primitives(
+            prims, shape, tile=32, span=_SPAN, bulge=bulge, periodic=graph.periodic
+        ).overflow
+        safe = _with(params, {"pore_width": jnp.where(overflow, 0.01, params.pore_width)})
+        w = jnp.where(overflow, 0.0, w)
+        out = out + draw(k, graph, w, safe, shape, tile=32, span=_SPAN, bulge=bulge)
+        bad = bad | overflow
+    return out, bad
+
+
+def _levels_from(x: Array, names: Sequence[str], base: tuple[WrinkleParams, WrinkleParams]):
+    """Both levels with the named entries of ``x`` set (level 2's α_d is half of level 1's)."""
+    changes: tuple[dict, dict] = ({}, {})
+    for i, name in enumerate(names):
+        if name == "d":
+            changes[0]["d"], changes[1]["d"] = x[i], x[i] / 2
+        elif name in ("fnoise", "snoise"):
+            changes[0][name] = x[i]
+        else:
+            level, field = name.split(".")
+            changes[int(level) - 1][field] = x[i]
+    return tuple(_with(p, c) for p, c in zip(base, changes, strict=True))
+
+
+def _with(params: WrinkleParams, changes: dict[str, Array]) -> WrinkleParams:
+    """``params`` with some fields replaced by (traced) values; ``tree_at`` skips the range
+    check, which needs concrete values (the swarm keeps values inside their bounds)."""
+    if not changes:
+        return params
+    names = list(changes)
+    values = [jnp.asarray(changes[n], jnp.float32) for n in names]
+    return eqx.tree_at(lambda p: [getattr(p, n) for n in names], params, values)
+
+
+class _SwarmLoss(eqx.Module):
+    """Loss of one agent: simulate, draw, compare statistics (arrays are traced leaves)."""
+
+    key: Array
+    target: Any
+    base: tuple[WrinkleParams, WrinkleParams]
+    layout: _Layout
+    names: tuple[str, ...] = eqx.field(static=True)
+
+    def __call__(self, x):
+        levels = _levels_from(x, self.names, self.base)
+        sims = _simulate(self.key, levels, self.layout)
+        image, bad = _draw_checked(self.key, sims, levels, self.layout.shape)
+        loss = texture_distance(_stats(image, 4, 4, "reflect"), self.target)
+        return jnp.where(bad, jnp.nan, loss)
+
+
+def _bounds(names, d_range, overrides) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    low, high, cyclic = [], [], []
+    for name in names:
+        field = name.split(".")[-1]
+        lo, hi = d_range if name == "d" else PARAMETER_RANGES[field]
+        if name in overrides:
+            lo, hi = overrides[name]
+        low.append(lo)
+        high.append(hi)
+        cyclic.append(field == "theta")
+    return np.array(low), np.array(high), np.array(cyclic)
+
+
+def fit_wrinkles(
+    key: Any,
+    target_patch: Any,
+    *,
+    names: Sequence[str] = PAPER_NAMES,
+    base: tuple[WrinkleParams, WrinkleParams] | None = None,
+    bounds: dict[str, tuple[float, float]] | None = None,
+    d_range: tuple[float, float] = D_RANGE,
+    n_agents: int = 50,
+    n_epochs: int = 100,
+    n_trials: int = 3,
+    n_steps: int = 50,
+    refine_steps: int = 30,
+    progress=None,
+) -> WrinkleFit:
+    """Fit two-level wrinkle parameters to a displacement patch (§4.2 of Weiss et al. 2023).
+
+    Args:
+        key: JAX random key (swarm, pores, simulation, drawing).
+        target_patch: ``(H, W)`` displacement map, ``min(H, W) >= 64``; it is compared through
+            :func:`jface.optim.texture_stats` (normalised to zero mean, unit variance).
+        names: parameters to fit: ``"d"`` (α_d of level 1; level 2 uses half), ``"1.<field>"`` /
+            ``"2.<field>"`` for a field of :class:`WrinkleParams` on one level, ``"fnoise"`` and
+            ``"snoise"`` (the noise level, drawn with level 1). Default: the paper's 27.
+        base: values of everything not fitted, ``(level 1, level 2)``; default
+            ``WrinkleParams(d=0.035)`` and level 2 at half the distance with ``snoise`` at its
+            minimum (one noise level). Level 2's α_d is always half of level 1's.
+        bounds: search ranges overriding Table 1 (``{name: (low, high)}``).
+        d_range: search range of α_d (fixes the pore capacities).
+        n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
+        n_steps: simulation steps per level (paper: 50).
+        refine_steps: BFGS steps on the drawing parameters afterwards (0: none).
+        progress: passed to :func:`jface.optim.pso`.
+
+    Returns:
+        A :class:`WrinkleFit`.
+
+    Raises:
+        TypeError/ValueError: a non-float, non-2-D, too small, non-finite or constant patch,
+            unknown names, bad ranges.
+    """
+    key = _checks.key(key)
+    target = _checks.float_array(target_patch, "target_patch", ndim=2, dtype=jnp.float32)
+    if min(target.shape) < 64:
+        raise ValueError(f"target_patch must be at least 64×64, got {target.shape}")
+    if float(jnp.std(target)) == 0.0:
+        raise ValueError("target_patch is constant: there is no texture to fit")
+    names = tuple(names)
+    known = {"d", "fnoise", "snoise"} | {f"{lv}.{n}" for lv in (1, 2) for n in PARAMETER_RANGES}
+    unknown = [n for n in names if n not in known or n in ("1.d", "2.d")]
+    if unknown or not names or len(set(names)) != len(names):
+        raise ValueError(
+            f"names must be distinct entries of 'd', 'fnoise', 'snoise', '<1|2>.<field>' "
+            f"(α_d only as 'd'), got {names!r}"
+        )
+    lo_d, hi_d = d_range
+    lo_t, hi_t = PARAMETER_RANGES["d"]
+    if not (lo_t <= lo_d < hi_d <= hi_t and lo_d >= 0.01):
+        raise ValueError(f"d_range must lie in [0.01, {hi_t}] with low < high, got {d_range}")
+    bounds = dict(bounds or {})
+    if base is None:
+        base = (
+            WrinkleParams(d=(lo_d + hi_d) / 2),
+            WrinkleParams(d=(lo_d + hi_d) / 4, snoise=0.001),
+        )
+    base = (base[0], base[1].replace(d=base[0].d / 2))
+    if "d" not in names and not lo_d <= float(base[0].d) <= hi_d:
+        raise ValueError(f"base α_d {float(base[0].d)} lies outside d_range {d_range}")
+    low, high, cyclic = _bounds(names, d_range, bounds)
+
+    k_layout, k_sim, k_swarm = jax.random.split(key, 3)
+    layout = _layout(k_layout, target.shape, d_range, _checks.integer(n_steps, "n_steps", low=1))
+    target_stats = texture_stats(target)
+    sim_keys = jax.random.split(k_sim, n_trials)
+    # one swarm per trial, each with its own simulation key; all share one compile
+    reporter = None if progress is None else _TrialProgress(progress)
+    trials = []
+    for t, (k, sk) in enumerate(zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True)):
+        if reporter is not None:
+            reporter.trial = t
+        loss = _SwarmLoss(sk, target_stats, base, layout, names)
+        trials.append(
+            pso(
+                k,
+                loss,
+                (low, high),
+                n_agents=n_agents,
+                n_epochs=n_epochs,
+                cyclic=cyclic,
+                progress=reporter,
+            )
+        )
+    best = int(np.argmin([float(r.loss) for r in trials]))
+    swarm = _merge(trials, best)
+    sim_key = sim_keys[best]
+    levels = _levels_from(swarm.params, names, base)
+    refined, loss, image = _refine(sim_key, levels, layout, target_stats, names, refine_steps)
+    return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image)
+
+
+class _TrialProgress:
+    """Reports ``(trial, epoch, best)`` for consecutive single-trial swarms. One object serves
+    every trial (the swarm's compiled run is keyed on it, so the trials share one compile)."""
+
+    def __init__(self, progress):
+        self.progress, self.trial = progress, 0
+
+    def __call__(self, _trial, epoch, best):
+        self.progress(self.trial, epoch, best)
+
+
+def _merge(trials: list[PSOResult], best: int) -> PSOResult:
+    return PSOResult(
+        params=trials[best].params,
+        loss=trials[best].loss,
+        history=jnp.concatenate([r.history for r in trials]),
+        trial_params=jnp.concatenate([r.trial_params for r in trials]),
+        trial_losses=jnp.concatenate([r.trial_losses for r in trials]),
+        n_nonfinite=jnp.concatenate([r.n_nonfinite for r in trials]),
+        best_trial=jnp.asarray(best),
+    )
+
+
+def _refine(sim_key, levels, layout, target_stats, names, steps):
+    """BFGS on the fitted drawing fields with the simulation result held fixed."""
+    sims = _simulate(sim_key, levels, layout)
+    fields = [
+        (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
+    ]
+
+    def unpack(z):
+        changes: tuple[dict, dict] = ({}, {})
+        for i, (lv, f) in enumerate(fields):
+            lo, hi = PARAMETER_RANGES[f]
+            changes[lv][f] = lo + (hi - lo) * jax.nn.sigmoid(z[i])
+        return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
+
+    def forward(z):
+        image, bad = _draw_checked(sim_key, sims, unpack(z), layout.shape)
+        loss = texture_distance(_stats(image, 4, 4, "reflect"), target_stats)
+        return jnp.where(bad, jnp.inf, loss)  # the line search backs off from undrawable steps
+
+    # the drawing's multi-pass while_loop is forward- but not reverse-differentiable, so the
+    # gradient (a dozen parameters at most) comes from forward mode
+    @jax.custom_vjp
+    def loss_of(z):
+        return forward(z)
+
+    def loss_fwd(z):
+        return forward(z), jax.jacfwd(forward)(z)
+
+    def loss_bwd(grad, cotangent):
+        return (cotangent * grad,)
+
+    loss_of.defvjp(loss_fwd, loss_bwd)
+
+    def loss(z, _):
+        return loss_of(z)
+
+    def logit(lv, f):
+        lo, hi = PARAMETER_RANGES[f]
+        u = jnp.clip((getattr(levels[lv], f) - lo) / (hi - lo), 1e-3, 1 - 1e-3)
+        return jnp.log(u) - jnp.log1p(-u)
+
+    if not fields or steps == 0:
+        image = _draw(sim_key, sims, levels, layout.shape)
+        return levels, texture_distance(_stats(image, 4, 4, "reflect"), target_stats), image
+    z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
+    start = loss(z0, None)
+    solver = optx.BFGS(rtol=1e-4, atol=1e-6)
+    sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
+    refined = loss(sol.value, None)
+    if bool(refined < start):  # keep the swarm's answer if the refinement did not help
+        z0, start = sol.value, refined
+    best = unpack(z0)
+    return best, start, _draw(sim_key, sims, best, layout.shape)

@@ -1,0 +1,256 @@
+"""Drawing (§3.2 of Weiss et al. 2023): Eq. 9 profile, mellowmax (Eq. 10), blending (Eq. 11),
+pore strength (Eq. 12–13); the tiled rasteriser against a brute-force float64 reference; jit,
+vmap, determinism, gradients; bad input."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jface.wrinkles import (
+    WrinkleParams,
+    build_graph,
+    draw,
+    make_pores,
+    mellowmax,
+    pore_strength,
+    sample_pores,
+    shape_function,
+    simulate,
+)
+from jface.wrinkles._drawing import N_VERTICES, primitives
+
+N = 64
+
+
+@pytest.fixture(scope="module")
+def level():
+    key = jax.random.key(3)
+    params = WrinkleParams(d=0.05, theta=0.7, s=0.3, wrinkle_width=0.5, pore_width=0.3,
+                           dmin=0.3, blend=0.6, skew=0.5, cushion=0.4, sperturb=1.0,
+                           fperturb=150.0, snoise=0.05, fnoise=200.0)  # fmt: skip
+    graph = build_graph(sample_pores(key, params.d, periodic=True))
+    weights = simulate(key, graph, params, n_steps=40, n_samples=200)
+    return graph, weights, params
+
+
+# ---------------------------------------------------------------- Eq. 9–11 on a straight wrinkle
+
+
+def _straight(n_hat, bulge=True):
+    """One wrinkle of weight 1 from (0.3, 0.5) to (0.7, 0.5). Perturbation and additive noise are
+    Perlin noise sampled exactly at lattice points (where gradient noise is zero): the vertices lie
+    at multiples of 1/140 and the pixel centres of a 128² map at odd multiples of 1/256."""
+    graph = build_graph(make_pores(np.array([[0.3, 0.5], [0.7, 0.5]], np.float32), radius=0.4), k=1)
+    params = WrinkleParams(d=0.05, wrinkle_width=0.6, pore_width=0.01, fperturb=140.0,
+                           fnoise=256.0, scale=0.5)  # fmt: skip
+    weights = jnp.zeros(graph.edge_mask.shape, jnp.float32).at[0].set(1.0)
+    out = draw(jax.random.key(0), graph, weights, params, (128, 128), n_hat=n_hat, bulge=bulge)
+    column = np.asarray(out, np.float64)[:, 64] / 0.5  # x = 0.504, far from both pores
+    dist = np.abs((np.arange(128) + 0.5) / 128 - 0.5) / (0.6 * 0.05)  # in valley half-widths
+    return column, dist
+
+
+def _eq9(x, bulge):
+    if bulge:
+        return np.where(x < 3, (x - 3) ** 2 * (x - 1) / 9, 0.0)
+    return np.where(x < 1.5, -((1 - 2 * x / 3) ** 3), 0.0)
+
+
+@pytest.mark.parametrize("bulge", [True, False])
+def test_straight_wrinkle_has_the_eq9_profile(bulge):
+    column, dist = _straight(n_hat=1, bulge=bulge)  # standard mellowmax: one fragment = value
+    np.testing.assert_allclose(column, _eq9(dist, bulge), atol=2e-6)
+    assert column.min() < -0.75 and (column.max() > 0.13 if bulge else column.max() == 0)
+
+
+def test_straight_wrinkle_blends_per_eq10_11():
+    column, dist = _straight(n_hat=16)
+    s = _eq9(dist, True)
+    beta = 20.0
+
+    def mm16(v):  # Eq. 10 with one fragment of value v ≥ 0 and N̂_f = 16
+        return np.log((15 + np.exp(beta * v)) / 16) / beta
+
+    np.testing.assert_allclose(column, mm16(np.maximum(s, 0)) - mm16(np.maximum(-s, 0)), atol=2e-6)
+
+
+def test_shape_function_matches_eq9():
+    x = np.linspace(0, 4, 101)
+    np.testing.assert_allclose(shape_function(x), _eq9(x, True), atol=1e-6)
+    np.testing.assert_allclose(shape_function(x, bulge=False), _eq9(x, False), atol=1e-6)
+    assert float(shape_function(0.0)) == -1.0 and float(shape_function(1.0)) == 0.0
+
+
+# ---------------------------------------------------------------- mellowmax (Eq. 10)
+
+
+def _standard(x, beta=20.0):
+    return np.log(np.mean(np.exp(beta * x), axis=-1)) / beta
+
+
+def test_mellowmax_one_fragment_and_bounds():
+    x = np.random.default_rng(0).uniform(0, 1, (50, 5))
+    np.testing.assert_allclose(mellowmax(x[:, :1], n_hat=1), x[:, 0], rtol=1e-6)
+    mm = np.asarray(mellowmax(x, n_hat=1), np.float64)
+    np.testing.assert_allclose(mm, _standard(x), rtol=1e-5)
+    assert np.all(mm >= x.mean(-1) - 1e-6) and np.all(mm <= x.max(-1) + 1e-6)
+    # the modified version is the standard one of the fragments padded with zeros to N̂ = 16
+    padded = np.concatenate([x, np.zeros((50, 11))], axis=-1)
+    modified = np.asarray(mellowmax(x), np.float64)
+    np.testing.assert_allclose(modified, _standard(padded), rtol=1e-5)
+    assert np.all(modified >= padded.mean(-1) - 1e-6) and np.all(modified <= x.max(-1) + 1e-6)
+    # more fragments than N̂: the standard mellowmax; masked fragments are absent
+    many = np.random.default_rng(1).uniform(0, 2, (4, 40))
+    np.testing.assert_allclose(mellowmax(many), _standard(many), rtol=1e-5)
+    mask = np.arange(40) < 25
+    np.testing.assert_allclose(mellowmax(many, mask=np.broadcast_to(mask, many.shape)),
+                               _standard(many[:, :25]), rtol=1e-5)  # fmt: skip
+    assert float(mellowmax(np.zeros(3), mask=np.zeros(3, bool))) == 0.0
+    assert np.isfinite(float(mellowmax(np.array([30.0, 1.0]))))  # no float32 overflow
+
+
+def test_pore_strength_eq12_13(level):
+    graph, weights, _ = level
+    got = np.asarray(pore_strength(graph, weights, 0.3, 0.6))
+    w, ht, hm = (np.asarray(a) for a in (weights, graph.half_edge, graph.half_mask))
+    for v in range(int(graph.node_count)):
+        inc = w[ht[v][hm[v]]]
+        wmax, wsum = inc.max(initial=0.0), inc.sum()
+        assert got[v] == pytest.approx(max(wmax + 0.3, wmax + 0.6 * (wsum - wmax)), abs=1e-6)
+
+
+# ---------------------------------------------------------------- rasteriser vs brute force
+
+
+def _brute_force(key, graph, weights, params, shape):
+    """Every primitive against every pixel in float64 numpy, blended with Eq. 10–11 directly."""
+    k_perturb, _ = jax.random.split(key)
+    p = primitives(k_perturb, graph, weights, params)
+    p = p._replace(**{f: np.asarray(getattr(p, f), np.float64) for f in p._fields if f != "valid"})
+    p = p._replace(valid=np.asarray(p.valid))
+    h, w = shape
+    ys, xs = np.meshgrid((np.arange(h) + 0.5) / h, (np.arange(w) + 0.5) / w, indexing="ij")
+    q = np.stack([xs, ys], -1).reshape(-1, 1, 2)
+    rel = q - p.p0[None]
+    rel -= np.round(rel)
+    len2 = np.sum(p.delta**2, -1)
+    t = np.clip(np.sum(rel * p.delta, -1) / np.where(len2 > 0, len2, 1), 0, 1)
+    perp = rel - t[..., None] * p.delta
+    normal = (
+        np.stack([-p.delta[:, 1], p.delta[:, 0]], -1)
+        / np.sqrt(np.where(len2 > 0, len2, 1))[:, None]
+    )
+    vert = np.linspace(0, 1, N_VERTICES)
+    offset = np.stack([np.interp(t[:, i], vert, p.offsets[i]) for i in range(len(len2))], -1)
+    perp -= offset[..., None] * normal
+    along = np.sum(perp * p.axis, -1)
+    across = perp[..., 0] * p.axis[:, 1] - perp[..., 1] * p.axis[:, 0]
+    x = np.sqrt((along / p.stretch) ** 2 + across**2) / np.where(p.valid, p.width, 1)
+    covered = p.valid & (x < 3)
+
+    def smooth(u):
+        return u * u * (3 - 2 * u)
+
+    strength = p.strength + p.cushion[:, 0] * (1 - smooth(np.minimum(t, 0.5) * 2))
+    strength += p.cushion[:, 1] * (1 - smooth(np.minimum(1 - t, 0.5) * 2))
+    s = np.where(covered, strength * _eq9(x, True), 0.0)
+    n = covered.sum(-1)
+    n_hat = np.maximum(16, n)
+
+    def mm(v):
+        return np.log((n_hat - n + np.sum(np.where(covered, np.exp(20 * v), 0), -1)) / n_hat) / 20
+
+    return (mm(np.maximum(s, 0)) - mm(np.maximum(-s, 0))).reshape(h, w)
+
+
+def test_tiled_rasteriser_matches_brute_force(level):
+    graph, weights, params = level
+    key = jax.random.key(5)
+    quiet = params.replace(snoise=0.001, scale=0.9)
+    got = np.asarray(draw(key, graph, weights, quiet, (N, N), tile=8, capacity=4), np.float64)
+    ref = _brute_force(key, graph, weights, quiet, (N, N))
+    noise_bound = 0.9 * 0.001 * 1.5
+    assert np.max(np.abs(got / 0.9 - ref)) < noise_bound / 0.9 + 1e-5
+    assert ref.min() < -0.2 and ref.max() > 0.005  # there is something to compare
+    # other tile sizes and capacities give the same map (performance settings only)
+    for tile, capacity in ((N, 7), (16, 3)):
+        other = draw(key, graph, weights, quiet, (N, N), tile=tile, capacity=capacity)
+        np.testing.assert_allclose(other, got, atol=1e-5)
+
+
+def test_jit_eager_vmap_determinism_and_grad(level):
+    graph, weights, params = level
+    key = jax.random.key(1)
+    eager = draw(key, graph, weights, params, (N, N))
+    jitted = jax.jit(lambda k, p: draw(k, graph, weights, p, (N, N)))
+    np.testing.assert_allclose(jitted(key, params), eager, atol=1e-5)
+    np.testing.assert_array_equal(draw(key, graph, weights, params, (N, N)), eager)
+    assert not np.array_equal(draw(jax.random.key(2), graph, weights, params, (N, N)), eager)
+
+    # a batch of agents with different drawing parameters and α_d
+    agents = [params.replace(wrinkle_width=ww, d=d) for ww, d in ((0.2, 0.04), (0.6, 0.05))]
+    batch = jax.tree.map(lambda *xs: jnp.stack(xs), *agents)
+    keys = jax.random.split(key, 2)
+    vm = jax.vmap(lambda k, p: draw(k, graph, weights, p, (N, N)))(keys, batch)
+    for i, p in enumerate(agents):
+        np.testing.assert_allclose(vm[i], draw(keys[i], graph, weights, p, (N, N)), atol=1e-5)
+
+    names = ("wrinkle_width", "pore_width", "dmin", "blend", "skew", "cushion", "sperturb",
+             "snoise", "scale")  # fmt: skip
+
+    def loss(values):
+        p = params.replace(**dict(zip(names, values, strict=True)))
+        return jnp.sum(draw(key, graph, weights, p, (32, 32)) ** 2)
+
+    grads = jax.grad(loss)([getattr(params, n) for n in names])
+    assert all(np.isfinite(float(g)) for g in grads)
+    g = dict(zip(names, (float(g) for g in grads), strict=True))
+    # Eq. 13 is a max: only one of α_dmin, α_blend moves a given pore
+    assert all(v != 0 for n, v in g.items() if n not in ("dmin", "blend"))
+    assert g["dmin"] != 0 or g["blend"] != 0
+
+
+def test_textured_params_and_skew_orientation(level):
+    graph, weights, params = level
+    texture = jnp.broadcast_to(jnp.linspace(0.1, 0.9, 16, dtype=jnp.float32), (16, 16))
+    out = draw(jax.random.key(0), graph, weights, params.replace(scale=texture), (N, N))
+    flat = draw(jax.random.key(0), graph, weights, params.replace(scale=0.5), (N, N))
+    # α_scale grows along x: the right half carries more displacement than the left
+    assert np.abs(out[:, N // 2 :]).sum() > np.abs(out[:, : N // 2]).sum()
+    assert not np.allclose(out, flat)
+
+
+def test_bad_input(level, unchecked):
+    graph, weights, params = level
+    key = jax.random.key(0)
+    with pytest.raises(ValueError, match=r"shape\[0\]"):
+        draw(key, graph, weights, params, (0, 8))
+    with pytest.raises(ValueError, match=r"shape\[1\]"):
+        draw(key, graph, weights, params, (8, 10**6))
+    with pytest.raises(ValueError, match="weights must lie in"):
+        draw(key, graph, weights + 2.0, params, (8, 8))
+    with pytest.raises(ValueError, match="weights must have shape"):
+        draw(key, graph, weights[:3], params, (8, 8))
+    with pytest.raises(TypeError, match="shape must be a pair"):
+        draw(key, graph, weights, params, 8)
+    with pytest.raises(TypeError, match="params must be WrinkleParams"):
+        draw(key, graph, weights, {"d": 0.01}, (8, 8))
+    with pytest.raises(ValueError, match=r"WrinkleParams.scale must be in \[0.1, 0.9\]"):
+        params.replace(scale=2.0)
+    with pytest.raises(ValueError, match=r"WrinkleParams.fnoise must be in \[100.0, 3000.0\]"):
+        WrinkleParams(fnoise=0.05)
+    with pytest.raises(ValueError, match="tile must divide"):
+        draw(key, graph, weights, params, (N, N), tile=5)
+    with pytest.raises(Exception, match="span=1"):
+        draw(key, graph, weights, params, (N, N), tile=4, span=1)
+
+
+def test_old_json_without_drawing_fields_loads():
+    from jface.wrinkles import params_from_json
+
+    (p,) = params_from_json('{"kind": "WrinkleParams", "levels": [{"d": 0.02}]}')
+    assert float(p.scale) == pytest.approx(0.5) and float(p.wrinkle_width) == pytest.approx(0.3)
+    assert math.isclose(float(p.d), 0.02, rel_tol=1e-6)
