@@ -118,7 +118,7 @@ def test_bad_faces(unchecked, faces, key):
 def face_dirs(faces, tmp_path_factory):
     """The faces written as ``jface remesh`` writes them."""
     from jface import io
-    from jface.cli._apps import write_face
+    from jface.cli._mesh import write_face
 
     root = tmp_path_factory.mktemp("faces")
     meta = io.provenance(schedule=list(faces[0].schedule))

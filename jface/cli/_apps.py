@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from jface import detail, io, mesh, render
 from jface.cli._detail import _parse_group
-from jface.cli._mesh import _shaded_layout
+from jface.cli._mesh import write_face
 from jface.detail._meshes import check_faces
 
 
@@ -121,34 +121,6 @@ def read_face(folder: str | Path) -> detail.Face:
         jnp.asarray(image, jnp.float32),
         schedule,
     )
-
-
-def write_face(
-    out: Path, face: detail.Face, meta: dict, fmt: str, protect: tuple | list = ()
-) -> None:
-    """Write a face folder (the layout of ``jface remesh``) with shaded PNGs of the base and the
-    detailed mesh drawn in the rectangle layout."""
-    protect = tuple(protect)
-    base = face.base
-    io.write_mesh(
-        out / f"base.{fmt}",
-        np.asarray(base.vertices),
-        np.asarray(base.faces),
-        uv=np.asarray(base.uv),
-        comment=f"jface {meta['jface_version']} base mesh",
-        protect=protect,
-    )
-    image = np.asarray(face.image)
-    io.write_exr(out / "displacement.exr", image, metadata=meta, protect=protect)
-    io.write_png(out / "displacement.png", render.shade(image), metadata=meta, protect=protect)
-    size = min(image.shape[0], 1024)
-    for name, shown in (("base", base), ("detailed", face.detailed())):
-        picture = _shaded_layout(shown.vertices, shown.faces, shown.uv, size)
-        io.write_png(out / f"{name}_shaded.png", picture, metadata=meta, protect=protect)
-    arrays = {"markers": face.markers, "control": face.control}
-    arrays |= {f"offsets_{k + 1}": o for k, o in enumerate(face.offsets)}
-    meta = {**meta, "schedule": list(face.schedule)}
-    io.save_arrays(out / "hierarchy.npz", arrays, meta, kind="MeshHierarchy", protect=protect)
 
 
 def _layout(args: argparse.Namespace) -> dict:

@@ -44,13 +44,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     dis.set_defaults(run=_displace)
 
 
-def _face_pose(result: mesh.Remeshed) -> np.ndarray:
+def _face_pose(face) -> np.ndarray:
     """A rotation that puts the face upright and frontal whatever the scan's axes: the mean base
     normal towards the viewer (+z), chin → forehead up (+y)."""
-    base = result.base
+    base = face.base
     normals = np.asarray(mesh.vertex_normals(base.vertices, base.faces), dtype=np.float64)
     forward = normals.sum(axis=0)
-    markers = np.asarray(result.markers, dtype=np.float64)
+    markers = np.asarray(face.markers, dtype=np.float64)
     names = mesh.LANDMARK_NAMES
     up = markers[names.index("forehead")] - markers[names.index("chin")]
     forward /= np.linalg.norm(forward)
@@ -69,8 +69,14 @@ def _views(vertices, faces, pose: np.ndarray, center, extent: float, size: int) 
     return np.concatenate([np.pad(frames[0], ((0, 0), (0, 4)), constant_values=1.0), frames[1]], 1)
 
 
-def _write_result(out: Path, result: mesh.Remeshed, meta: dict, fmt: str, protect=()) -> None:
-    base = result.base
+def write_face(out: Path, face, meta: dict, fmt: str, protect=()) -> None:
+    """Write a face folder: base mesh, displacement EXR + PNG, shaded 3-D views of the base and
+    the re-displaced mesh, and the hierarchy (markers, control, offsets, schedule).
+
+    ``face`` is a :class:`jface.mesh.Remeshed` or a :class:`jface.detail.Face`.
+    """
+    protect = tuple(protect)
+    base = face.base
     io.write_mesh(
         out / f"base.{fmt}",
         np.asarray(base.vertices),
@@ -79,14 +85,14 @@ def _write_result(out: Path, result: mesh.Remeshed, meta: dict, fmt: str, protec
         comment=f"jface {meta['jface_version']} base mesh",
         protect=protect,
     )
-    image = np.asarray(result.image)
+    image = np.asarray(face.image)
     io.write_exr(out / "displacement.exr", image, metadata=meta, protect=protect)
     io.write_png(out / "displacement.png", render.shade(image), metadata=meta, protect=protect)
     # Base and re-displaced mesh seen from the same camera, so the two views align.
-    pose = _face_pose(result)
+    pose = _face_pose(face)
     center, extent = raster.framing(np.asarray(base.vertices, dtype=np.float64) @ pose.T)
     size = min(max(image.shape), 768)
-    detailed = mesh.displace(base, result.image)
+    detailed = mesh.displace(base, face.image)
     for name, shape in (("base", base), ("detailed", detailed)):
         io.write_png(
             out / f"{name}_shaded.png",
@@ -94,8 +100,9 @@ def _write_result(out: Path, result: mesh.Remeshed, meta: dict, fmt: str, protec
             metadata=meta,
             protect=protect,
         )
-    arrays = {"markers": result.markers, "control": result.control}
-    arrays |= {f"offsets_{k + 1}": o for k, o in enumerate(result.offsets)}
+    arrays = {"markers": face.markers, "control": face.control}
+    arrays |= {f"offsets_{k + 1}": o for k, o in enumerate(face.offsets)}
+    meta = {**meta, "schedule": list(face.schedule)}
     io.save_arrays(out / "hierarchy.npz", arrays, meta, kind="MeshHierarchy", protect=protect)
 
 
@@ -126,7 +133,7 @@ def _remesh(args: argparse.Namespace) -> None:
         image_convention="row 0 = v 1 (forehead); u left to right = subject's right to left",
     )
     out = Path(args.out_dir)
-    _write_result(out, result, meta, args.format, protect=(args.scan, args.landmarks))
+    write_face(out, result, meta, args.format, protect=(args.scan, args.landmarks))
     missed = int(np.sum(np.asarray(result.missed)))
     print(
         f"remeshed {Path(args.scan).name} in {seconds:.1f} s: base mesh "
@@ -168,7 +175,7 @@ def demo(out: Path, seed: int) -> None:
         fit=0,
         hit_rates=[round(float(r), 5) for r in np.asarray(result.hit_rate)],
     )
-    _write_result(out, result, meta, "ply")
+    write_face(out, result, meta, "ply")
     sampler = mesh.image_sampler(result.base.uv, result.base.faces, result.image.shape)
     known = np.asarray(sampler(mesh.known_displacement(synthetic, result.base)))
     offset = np.asarray(sampler(mesh.smooth_offset(synthetic, result.base)))
