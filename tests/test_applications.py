@@ -1,5 +1,6 @@
 """Interpolation with restored detail and the paper's §4 comparison, on real textures."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -66,3 +67,20 @@ def test_bad_weights(unchecked, faces, key):
         detail.interpolate(key, images, stats, jnp.ones(3) / 3)
     with pytest.raises(ValueError, match="donor must have"):
         detail.transfer_detail(images[0], images[0, :128, :128])
+
+
+def test_method_subset(faces, key, brick):
+    """A subset of the methods gives exactly those images, equal to the full run's."""
+    images, _ = faces
+    young = 0.3 * images[0]
+    old = jnp.asarray(brick[:256, :256], jnp.float32)
+    target = detail.analyze(old, grid=8)
+    some = detail.method_results(key, young, old, target, methods=("transfer", "perlin"))
+    assert list(some) == ["transfer", "perlin"]
+    noise_key = jax.random.split(key)[1]  # the statistical method gets the other half
+    np.testing.assert_array_equal(some["perlin"], detail.perlin_detail(noise_key, young, target))
+    np.testing.assert_array_equal(
+        some["transfer"], detail.transfer_detail(young, old, target.n_scales)
+    )
+    with pytest.raises(ValueError, match="subset of"):
+        detail.method_results(key, young, old, target, methods=("blur",))

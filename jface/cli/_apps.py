@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from importlib import resources
 from pathlib import Path
 
 import jax
@@ -17,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from jface import detail, io, mesh, render
+from jface import detail, io, mesh, render, wrinkles
 from jface.cli._detail import _parse_group
 from jface.cli._mesh import write_face
 from jface.detail._meshes import check_faces
@@ -217,15 +218,6 @@ def _add_detail(args: argparse.Namespace) -> None:
 def _age(args: argparse.Namespace) -> None:
     young, old = read_face(args.young), read_face(args.old)
     target, source = _target(args, old)
-    key = jax.random.key(args.seed)
-    steps = tqdm(total=3, desc="age", unit="step")
-    aged = detail.age(key, young, old, target, n_coarse=args.levels, **_options(args))
-    steps.update()
-    results = detail.method_results(key, young.image, old.image, target, **_options(args))
-    steps.update()
-    scores = detail.method_scores(results, young.image, target)
-    steps.update()
-    steps.close()
     meta = io.provenance(
         seed=args.seed,
         young=Path(args.young).name,
@@ -237,9 +229,36 @@ def _age(args: argparse.Namespace) -> None:
     )
     out = Path(args.out)
     protect = (args.young, args.old)
-    write_face(out / "aged", aged, meta, args.format, protect)
+    scores = age_and_compare(
+        jax.random.key(args.seed), young, old, target, out, meta, args.levels, _options(args),
+        fmt=args.format, protect=protect,
+    )  # fmt: skip
+    print(json.dumps({"out": str(out), "methods": scores}))
+
+
+def age_and_compare(
+    key, young, old, target, out: Path, meta: dict, levels: int, options: dict, *,
+    fmt: str = "obj", protect=(),
+) -> dict:  # fmt: skip
+    """Age ``young`` towards ``target`` (§3.4), make the §4 baselines beside it and write the
+    aged face, the detail-only face, each method's EXR, the Fig. 10 comparison figure and table;
+    returns the table."""
+    steps = tqdm(total=3, desc="age", unit="step")
+    aged = detail.age(key, young, old, target, n_coarse=levels, **options)
+    steps.update()
+    # The statistical method's image is the aged face's; the baselines are made beside it.
+    baselines = [m for m in detail.METHODS if m != "statistical"]
+    results = {
+        "statistical": aged.image,
+        **detail.method_results(key, young.image, old.image, target, methods=baselines, **options),
+    }
+    steps.update()
+    scores = detail.method_scores(results, young.image, target)
+    steps.update()
+    steps.close()
+    write_face(out / "aged", aged, meta, fmt, protect)
     detail_only = detail.Face(young.markers, young.offsets, young.base, aged.image, young.schedule)
-    write_face(out / "detail_only", detail_only, meta, args.format, protect)
+    write_face(out / "detail_only", detail_only, meta, fmt, protect)
     for name, image in results.items():
         io.write_exr(out / "methods" / f"{name}.exr", np.asarray(image), metadata=meta)
     # Fig. 10: young, old, then the four methods; below, each one's per-tile error to the target
@@ -248,4 +267,62 @@ def _age(args: argparse.Namespace) -> None:
     figure = render.comparison(images, [_tile_errors(image, target) for image in images])
     io.write_png(out / "comparison.png", figure, metadata=meta)
     io.write_json(out / "comparison.json", {**meta, "methods": scores})
-    print(json.dumps({"out": str(out), "methods": scores}))
+    return scores
+
+
+def _demo_faces(seed: int, size: int) -> tuple[detail.Face, detail.Face]:
+    """Two identities of the built-in ICT-FaceKit model, remeshed; the young one gets faint
+    pores (high frequencies of the built-in gravel map), the old one deeper pores plus micro
+    wrinkles from :mod:`jface.wrinkles`. Amplitudes in cm, like the ICT meshes."""
+    with resources.as_file(resources.files("jface") / "data" / "ict_face_small.npz") as path:
+        model, _ = io.load_arrays(path, kind="FaceMeshModel")
+    with resources.as_file(resources.files("jface") / "data" / "gravel.exr") as path:
+        gravel = io.read_map(path)
+    rng = np.random.default_rng(seed)
+    modes = model["identity_deltas"].astype(np.float64)
+    keys = jax.random.split(jax.random.key(seed))
+
+    def fine(texture):
+        return texture / texture.std()
+
+    pores = [fine(crop - detail.remove_detail(crop, n_bands=3)) for crop in (
+        jnp.asarray(gravel[:size, :size]), jnp.asarray(gravel[-size:, -size:])
+    )]  # fmt: skip
+    creases = wrinkles.synthesize(
+        keys[1], wrinkles.WrinkleParams(d=0.04, theta=0.6, s=0.6, deposit=0.6), (size, size)
+    ).displacement
+    detail_maps = (0.004 * pores[0], 0.008 * pores[1] + 0.012 * fine(creases))
+    result = []
+    for extra in detail_maps:
+        person = model["vertices"] + np.tensordot(rng.normal(size=len(modes)), modes, axes=1)
+        remeshed = mesh.remesh(
+            person, model["faces"], mesh.ict_landmarks(person), image_size=size, n_smooth=2
+        )
+        face = detail.Face.from_remeshed(remeshed)
+        result.append(
+            detail.Face(face.markers, face.offsets, face.base, face.image + extra, face.schedule)
+        )
+    return result[0], result[1]
+
+
+def demo(out_dir: Path, seed: int) -> None:
+    """Aging and the §4 comparison (Fig. 10) on two remeshed identities of the built-in
+    ICT-FaceKit model."""
+    out = Path(out_dir) / "age"
+    young, old = _demo_faces(seed, 256)
+    target = detail.analyze(old.image)
+    meta = io.provenance(
+        seed=seed,
+        source="jface/data/ict_face_small.npz identities + gravel pores + jface.wrinkles",
+        levels=3,
+        experiment="Golovinskiy 2006 §3.4 aging, §4 comparison",
+    )
+    write_face(out / "young", young, meta, "ply")
+    write_face(out / "old", old, meta, "ply")
+    scores = age_and_compare(jax.random.key(seed), young, old, target, out, meta, 3, {}, fmt="ply")
+    print(
+        "age: young ICT face aged to the old one's statistics — median per-tile std error "
+        + ", ".join(f"{name} {row['stats_error']:.1%}" for name, row in scores.items())
+        + f"; keeps {scores['statistical']['keeps_coarse']:.2f} of the young detail's coarsest "
+        "band (correlation)"
+    )

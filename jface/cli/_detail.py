@@ -243,8 +243,11 @@ def demo(out: Path, seed: int) -> None:
     for name, image in (("original", original), ("smoothed", smooth), ("synthesized", result)):
         io.write_exr(out / "detail" / f"{name}.exr", np.asarray(image), metadata=meta)
         shaded.append(render.shade(image))
-    strip = np.concatenate([np.pad(s, ((0, 0), (0, 4)), constant_values=1.0) for s in shaded], 1)
-    io.write_png(out / "detail" / "fig5_original_smoothed_synthesized.png", strip, metadata=meta)
+    io.write_png(
+        out / "detail" / "fig5_original_smoothed_synthesized.png",
+        render.strip(shaded),
+        metadata=meta,
+    )
     io.write_png(
         out / "detail" / "statistics.png", render.stats_mosaic(stats.std, 4), metadata=meta
     )

@@ -66,7 +66,7 @@ def _views(vertices, faces, pose: np.ndarray, center, extent: float, size: int) 
         raster.render(posed, np.asarray(faces), size, yaw=yaw, center=center, extent=extent)
         for yaw in (0.0, 35.0)
     ]
-    return np.concatenate([np.pad(frames[0], ((0, 0), (0, 4)), constant_values=1.0), frames[1]], 1)
+    return render.strip(frames)
 
 
 def write_face(out: Path, face, meta: dict, fmt: str, protect=()) -> None:
@@ -180,9 +180,8 @@ def demo(out: Path, seed: int) -> None:
     known = np.asarray(sampler(mesh.known_displacement(synthetic, result.base)))
     offset = np.asarray(sampler(mesh.smooth_offset(synthetic, result.base)))
     io.write_exr(out / "known_displacement.exr", known, metadata=meta)
-    pair = [render.shade(known), render.shade(np.asarray(result.image))]
-    strip = np.concatenate([np.pad(pair[0], ((0, 0), (0, 4)), constant_values=1.0), pair[1]], 1)
-    io.write_png(out / "known_vs_recovered.png", strip, metadata=meta)
+    pair = render.strip([render.shade(known), render.shade(np.asarray(result.image))])
+    io.write_png(out / "known_vs_recovered.png", pair, metadata=meta)
     inside = (slice(51, -51), slice(51, -51))
     image = np.asarray(result.image)[inside].ravel()
     corr = [np.corrcoef(t[inside].ravel(), image)[0, 1] for t in (known, known + offset)]

@@ -4,6 +4,7 @@ interpolation with detail restored, and the simple alternatives the paper compar
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
@@ -132,7 +133,13 @@ METHODS = ("statistical", "perlin", "sharpen", "transfer")
 
 
 def method_results(
-    key: PRNGKeyArray, source: ArrayLike, target_image: ArrayLike, target: DetailStats, **options
+    key: PRNGKeyArray,
+    source: ArrayLike,
+    target_image: ArrayLike,
+    target: DetailStats,
+    *,
+    methods: Sequence[str] = METHODS,
+    **options,
 ) -> dict[str, Float[Array, "H W"]]:
     """Give ``source`` the detail of a target face by each method of §4 (Fig. 10 c–f).
 
@@ -141,20 +148,26 @@ def method_results(
         source: ``(H, W)`` displacement image to change (the young face).
         target_image: ``(H, W)`` displacement image of the target face (the donor of "transfer").
         target: its statistics (or a group's).
+        methods: which of :data:`METHODS` to run (e.g. leave out "statistical" when
+            :func:`jface.detail.age` already made that image).
         **options: passed to :func:`jface.detail.synthesize`.
 
     Returns:
-        method name (:data:`METHODS`) → ``(H, W)`` image.
+        method name → ``(H, W)`` image, in the order of ``methods``.
     """
     key = _checks.key(key)
     source = _checks.float_array(source, "source", ndim=2)
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        raise ValueError(f"methods must be a non-empty subset of {METHODS}, got {list(methods)}")
     synth_key, noise_key = jax.random.split(key)
-    return {
-        "statistical": synthesize(synth_key, source, target, **options),
-        "perlin": perlin_detail(noise_key, source, target),
-        "sharpen": sharpen(source, target),
-        "transfer": transfer_detail(source, target_image, target.n_scales),
+    run = {
+        "statistical": lambda: synthesize(synth_key, source, target, **options),
+        "perlin": lambda: perlin_detail(noise_key, source, target),
+        "sharpen": lambda: sharpen(source, target),
+        "transfer": lambda: transfer_detail(source, target_image, target.n_scales),
     }
+    return {name: run[name]() for name in methods}
 
 
 def method_scores(
