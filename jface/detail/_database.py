@@ -3,6 +3,7 @@ devices, with progress, and resumable (a crash keeps every finished chunk)."""
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -56,9 +57,15 @@ def analyze_batch(
         )
     mesh = Mesh(np.array(devices), ("batch",))
     images = jax.device_put(images, NamedSharding(mesh, PartitionSpec("batch")))
-    kernel = jax.vmap(lambda x: _analyze(x, grid, n_scales, n_orientations, bins, boundary))
-    stats = jax.jit(kernel)(images)
+    stats = _analyze_stack(images, grid, n_scales, n_orientations, bins, boundary)
     return jax.tree.map(lambda x: x[:n], stats)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
+def _analyze_stack(images, grid, n_scales, n_orientations, bins, boundary) -> DetailStats:
+    # Module level, so every chunk of a batch run reuses one compilation; the input's sharding
+    # splits the vmapped work over the devices.
+    return jax.vmap(lambda x: _analyze(x, grid, n_scales, n_orientations, bins, boundary))(images)
 
 
 def build_database(
