@@ -22,7 +22,7 @@ import numpy as np
 from scipy import ndimage
 from skimage import data
 
-from jface import detail, mesh, raster, tiles
+from jface import detail, io, mesh, raster, tiles
 
 ICT_FILE = (
     Path(__file__).resolve().parents[2] / "shared" / "data" / "ict_facekit" / "ict_face_area.npz"
@@ -92,3 +92,16 @@ def front_view(face: detail.Face, size: int = 384, frame=None) -> np.ndarray:
     return raster.render(
         vertices, triangles, size, center=center, extent=extent, light=(-0.4, 0.5, 0.8)
     )
+
+
+def write_detailed(out: Path, name: str, face: detail.Face, meta: dict, what: str) -> None:
+    """The detailed face as ``name.obj`` (with uv) and its displacement image as EXR."""
+    detailed = face.detailed()
+    io.write_mesh(
+        out / f"{name}.obj",
+        np.asarray(detailed.vertices),
+        np.asarray(detailed.faces),
+        uv=np.asarray(detailed.uv),
+        comment=f"jface {meta['jface_version']} {what}",
+    )
+    io.write_exr(out / f"{name}_displacement.exr", np.asarray(face.image), metadata=meta)

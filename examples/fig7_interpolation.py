@@ -18,7 +18,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _ict_population import ICT_FILE, front_view, population
+from _ict_population import ICT_FILE, front_view, population, write_detailed
 
 from jface import detail, io, raster, render
 
@@ -53,15 +53,7 @@ def main() -> None:
         metadata=meta,
     )
     for name, face in (("average", result.average), ("coerced", result.coerced)):
-        detailed = face.detailed()
-        io.write_mesh(
-            out / f"{name}.obj",
-            np.asarray(detailed.vertices),
-            np.asarray(detailed.faces),
-            uv=np.asarray(detailed.uv),
-            comment=f"jface {meta['jface_version']} interpolated face ({name})",
-        )
-        io.write_exr(out / f"{name}_displacement.exr", np.asarray(face.image), metadata=meta)
+        write_detailed(out, name, face, meta, f"interpolated face ({name})")
         ratio = detail.analyze(face.image).std[0] / result.target.std[0]
         error = detail.stats_error(detail.analyze(face.image), result.target)
         print(

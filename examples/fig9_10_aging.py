@@ -19,7 +19,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _ict_population import ICT_FILE, front_view, population
+from _ict_population import ICT_FILE, front_view, population, write_detailed
 
 from jface import detail, io, raster, render
 
@@ -63,15 +63,7 @@ def main() -> None:
         views = [front_view(f, frame=frame) for f in faces]
         io.write_png(out / f"fig9_{name}.png", render.strip(views), metadata=meta)
     for name, face in (("aged", aged), ("deaged", young_again)):
-        detailed = face.detailed()
-        io.write_mesh(
-            out / f"{name}.obj",
-            np.asarray(detailed.vertices),
-            np.asarray(detailed.faces),
-            uv=np.asarray(detailed.uv),
-            comment=f"jface {meta['jface_version']} {name} face (Golovinskiy 2006 §3.4)",
-        )
-        io.write_exr(out / f"{name}_displacement.exr", np.asarray(face.image), metadata=meta)
+        write_detailed(out, name, face, meta, f"{name} face (Golovinskiy 2006 §3.4)")
 
     # §4 / Fig. 10: the young image after the coarse change, given the old detail four ways.
     results = detail.method_results(
