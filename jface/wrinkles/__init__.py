@@ -17,6 +17,7 @@ from jface.wrinkles._drawing import (
     BETA,
     N_HAT,
     draw,
+    draw_bands,
     mellowmax,
     pore_strength,
     shape_function,
@@ -54,7 +55,14 @@ from jface.wrinkles._simulation import (
     orientation_density,
     simulate,
 )
-from jface.wrinkles._synthesis import Level, Synthesis, synthesize
+from jface.wrinkles._synthesis import (
+    Bands,
+    Level,
+    Simulated,
+    Synthesis,
+    synthesize,
+    synthesize_bands,
+)
 from jface.wrinkles._variation import perlin_variation
 
 __all__ = [
@@ -63,12 +71,14 @@ __all__ = [
     "N_SAMPLES",
     "PAPER_NAMES",
     "PARAMETER_RANGES",
+    "Bands",
     "GraphSpec",
     "Level",
     "Orientations",
     "PoreCandidates",
     "PoreGraph",
     "Pores",
+    "Simulated",
     "Synthesis",
     "WrinkleFit",
     "WrinkleParams",
@@ -79,6 +89,7 @@ __all__ = [
     "continuation_kernel",
     "default_capacity",
     "draw",
+    "draw_bands",
     "extract_orientation",
     "extract_pores",
     "find_pores",
@@ -103,4 +114,5 @@ __all__ = [
     "simulate",
     "stack_params",
     "synthesize",
+    "synthesize_bands",
 ]
