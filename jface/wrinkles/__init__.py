@@ -37,6 +37,7 @@ from jface.wrinkles._extraction import (
 )
 from jface.wrinkles._fit import PAPER_NAMES, WrinkleFit, fit_wrinkles
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
+from jface.wrinkles._mesh_radius import radius_map_from_mesh
 from jface.wrinkles._params import (
     PARAMETER_RANGES,
     WrinkleParams,
@@ -108,6 +109,7 @@ __all__ = [
     "params_to_json",
     "perlin_variation",
     "pore_strength",
+    "radius_map_from_mesh",
     "sample_pores",
     "save_params",
     "shape_function",

@@ -266,13 +266,22 @@ def extract_pores(
 
 
 def blend_with_scan(
-    scan: ArrayLike, detail: ArrayLike, *, half_size: int = 5
-) -> Float[Array, "H W"]:
+    scan: ArrayLike, detail: ArrayLike, *, half_size: int = 5, first_row: int = 0
+) -> Float[Array, "h W"]:
     """§5: the scan's displacement low-passed (Gaussian cut at ``half_size`` px, σ = half_size/2)
-    plus the simulated micro detail (same shape)."""
+    plus the simulated micro detail.
+
+    ``detail`` is the whole map (the scan's shape) or a band of it, rows ``first_row`` onwards
+    (for maps drawn band by band, :func:`synthesize_bands`); a band gets exactly the whole map's
+    rows (the low-pass reads ``half_size`` rows of the scan either side).
+    """
     base = _checks.float_array(scan, "scan", ndim=2, dtype=jnp.float32)
     det = _checks.float_array(detail, "detail", ndim=2, dtype=jnp.float32)
-    if base.shape != det.shape:
-        raise ValueError(f"scan {base.shape} and detail {det.shape} must have one shape")
     half_size = _checks.integer(half_size, "half_size", low=1, high=256)
-    return gaussian_blur(base, half_size / 2.0, half_size) + det
+    h, n = base.shape[0], det.shape[0]
+    first_row = _checks.integer(first_row, "first_row", low=0, high=max(h - n, 0))
+    if det.shape[1] != base.shape[1] or n > h:
+        raise ValueError(f"scan {base.shape} and detail {det.shape} must have one shape")
+    lo, hi = max(first_row - half_size, 0), min(first_row + n + half_size, h)
+    low = gaussian_blur(base[lo:hi], half_size / 2.0, half_size)
+    return low[first_row - lo : first_row - lo + n] + det
