@@ -11,7 +11,7 @@ Lee Perry-Smith's UVs are one unwrapped head (face in the middle, ears at the si
 the unit square; MediaPipe's UVs are the frontal face. Both have v up, the wrinkle maps y down the
 rows, hence the ``[::-1]`` before displacing.
 
-Run: ``python examples/wrinkles_on_meshes.py --out wrinkles_meshes [--size 2048]``
+Run: ``python examples/wrinkles_on_meshes.py --out wrinkles_meshes [--size 2048] [--meshes DIR]``
 Credits: "Infinite, 3D Head Scan" by Lee Perry-Smith (CC BY 3.0); MediaPipe (Apache-2.0).
 """
 
@@ -30,8 +30,8 @@ MESHES = {
     # name: (file, subdivisions before displacing, pore distance α_d, depth per map unit as a
     # fraction of the bounding-box diagonal, view yaw in degrees)
     "mediapipe_face": (Path(jface.__file__).parent / "data" / "mediapipe_canonical_face.obj",
-                       3, 0.012, 0.004, 20.0),
-    "lee_perry_smith_head": (SHARED / "lee_perry_smith_head.obj", 2, 0.006, 0.0015, 30.0),
+                       3, 0.012, 0.006, 20.0),
+    "lee_perry_smith_head": (SHARED / "lee_perry_smith_head.obj", 1, 0.006, 0.0015, 30.0),
 }  # fmt: skip
 
 
@@ -70,9 +70,16 @@ def main() -> None:
     parser.add_argument("--out", default="wrinkles_meshes", help="output folder")
     parser.add_argument("--size", type=int, default=2048, help="map side in pixels")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--meshes",
+        type=Path,
+        default=SHARED,
+        help="folder of lee_perry_smith_head.obj (default ../shared/data/meshes)",
+    )
     args = parser.parse_args()
     out = Path(args.out)
     for name, (path, subdivisions, d, depth, yaw) in MESHES.items():
+        path = path if path.parent != SHARED else args.meshes / path.name
         if not path.is_file():
             print(f"{name}: {path} not found (see ../shared/data/README.md); skipped")
             continue

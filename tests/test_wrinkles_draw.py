@@ -37,7 +37,8 @@ def level():
                            dmin=0.3, blend=0.6, skew=0.5, cushion=0.4, sperturb=1.0,
                            fperturb=150.0, snoise=0.05, fnoise=200.0)  # fmt: skip
     graph = build_graph(sample_pores(key, params.d, periodic=True))
-    weights = simulate(key, graph, params, n_steps=40, n_samples=200)
+    # the extraction tests' settings: compiled functions are shared across the two modules
+    weights = simulate(key, graph, params, n_steps=60, n_samples=3000)
     return graph, weights, params
 
 
@@ -180,10 +181,9 @@ def test_tiled_rasteriser_matches_brute_force(level):
     noise_bound = 0.9 * 0.001 * 1.5
     assert np.max(np.abs(got / 0.9 - ref)) < noise_bound / 0.9 + 1e-5
     assert ref.min() < -0.2 and ref.max() > 0.005  # there is something to compare
-    # other tile sizes and capacities give the same map (performance settings only)
-    for tile, capacity in ((N, 7), (16, 3)):
-        other = draw(key, graph, weights, quiet, (N, N), tile=tile, capacity=capacity)
-        np.testing.assert_allclose(other, got, atol=1e-5)
+    # another tile size and capacity give the same map (performance settings only)
+    other = draw(key, graph, weights, quiet, (N, N), tile=N, capacity=7)
+    np.testing.assert_allclose(other, got, atol=1e-5)
 
 
 def test_jit_eager_vmap_determinism_and_grad(level):
@@ -323,7 +323,7 @@ def test_cli_renders_large_maps_band_by_band(tmp_path, monkeypatch, level):
         args = parser.parse_args(["wrinkles", "render", "--params", str(params), "--size",
                                   str(N), "--base", str(tmp_path / "scan.exr"), "--out",
                                   str(tmp_path / out), "--seed", "4", "--periodic",
-                                  "--steps", "40", "--samples", "200"])  # fmt: skip
+                                  "--steps", "60", "--samples", "3000"])  # fmt: skip
         args.run(args)
         return read_exr(tmp_path / out)
 
