@@ -506,23 +506,29 @@ def _static_sizes(prims, shape, opts: DrawOptions, periodic: bool) -> DrawOption
     """Fill in ``span`` and ``passes``: exact for concrete primitives, else always sufficient."""
     concrete = not any(_checks.is_traced(x) for x in jax.tree.leaves(prims))
     span, passes = opts.span, opts.passes
-    if span is None:
+    if concrete:  # a span too small is found here, before anything is compiled
+        need = needed_span(prims, shape, tile=opts.tile, bulge=opts.bulge, periodic=periodic)
+        if span is not None and span < need:
+            raise ValueError(
+                f"a wrinkle or pore touches {need} tiles per axis, more than span={span}; pass "
+                "a larger span (or a larger tile) to draw"
+            )
+        span = need if span is None else span
+    elif span is None:
         span = max(-(-shape[0] // opts.tile), -(-shape[1] // opts.tile))
-        if concrete:
-            span = needed_span(prims, shape, tile=opts.tile, bulge=opts.bulge, periodic=periodic)
     if passes is None:
         passes = -(-prims.valid.shape[0] // opts.capacity)
         if concrete:
-            bins = _bin(prims, shape, opts._replace(span=span), periodic)
+            bins = _bin(prims, shape, opts.tile, span, opts.bulge, periodic)
             passes = max(1, -(-int(jnp.max(bins.count)) // opts.capacity))
-    return opts._replace(span=span, passes=passes)
+    # β and N̂ as arrays: traced, so that they do not each compile the rasteriser anew
+    return opts._replace(span=span, passes=passes, beta=jnp.float32(opts.beta),
+                         n_hat=jnp.float32(opts.n_hat))  # fmt: skip
 
 
 @eqx.filter_jit
-def _bin(prims, shape, opts, periodic):
-    return bin_primitives(
-        prims, shape, tile=opts.tile, span=opts.span, bulge=opts.bulge, periodic=periodic
-    )
+def _bin(prims, shape, tile, span, bulge, periodic):
+    return bin_primitives(prims, shape, tile=tile, span=span, bulge=bulge, periodic=periodic)
 
 
 def _tile_rows(key, prims, bins, params, shape, opts, periodic, first, n):
@@ -615,7 +621,7 @@ def _bands(key, graph, weights, params, shape, opts, band):
     k_perturb, k_noise = jax.random.split(key)
     prims = primitives(k_perturb, graph, weights, params)
     opts = _static_sizes(prims, shape, opts, graph.periodic)
-    bins = _bin(prims, shape, opts, graph.periodic)
+    bins = _bin(prims, shape, opts.tile, opts.span, opts.bulge, graph.periodic)
     n = -(-min(band, shape[0]) // opts.tile)  # tile rows per band
     for first in range(0, -(-shape[0] // opts.tile), n):
         at_row = jnp.asarray(first, jnp.int32)  # traced: one compilation for every band
