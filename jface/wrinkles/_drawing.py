@@ -424,8 +424,11 @@ def _check_draw(key, graph, weights, params, shape, opts: DrawOptions):
         _checks.integer(shape[1], "shape[1]", low=1, high=_MAX_SIDE),
     )
     if opts.tile is None:  # periodic binning wraps by whole tiles: the tile must divide the map
-        side = math.gcd(*shape) if graph.periodic else _TILE
-        tile = max(t for t in range(1, _TILE + 1) if side % t == 0)
+        # above 4096 px the tile grows with the map, so that a primitive still touches only a
+        # few tiles: the bins (primitives × span²) would otherwise grow like the map itself
+        top = _TILE << max(0, (max(shape) // 4096).bit_length() - 1)
+        side = math.gcd(*shape) if graph.periodic else top
+        tile = max(t for t in range(1, top + 1) if side % t == 0)
     else:
         tile = _checks.integer(opts.tile, "tile", low=1, high=1024)
     if graph.periodic and (shape[0] % tile or shape[1] % tile):
@@ -476,8 +479,9 @@ def draw(
         params: the level's :class:`WrinkleParams`.
         shape: ``(H, W)`` of the map covering the unit square (static).
         bulge: Eq. 9's "ours, bulge" profile (True) or "ours, no bulge" (the paper's finest level).
-        tile: screen-tile side in pixels (static; performance only). Default 16, or for a
-            periodic graph the largest divisor ≤ 16 of both sides (periodic maps need one).
+        tile: screen-tile side in pixels (static; performance only). Default 16 (32 from
+            8192 px, 64 from 16384 px, ...), or for a periodic graph the largest divisor of both
+            sides up to that (periodic maps need one).
         capacity: primitives evaluated per tile and pass (static; performance only).
         span: most tiles per axis a primitive's bounding box may touch (static).
         passes: passes per tile, so a tile holds up to ``passes · capacity`` primitives (static).
