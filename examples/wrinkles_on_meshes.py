@@ -31,13 +31,15 @@ MESHES = {
     # fraction of the bounding-box diagonal, view yaw in degrees)
     "mediapipe_face": (Path(jface.__file__).parent / "data" / "mediapipe_canonical_face.obj",
                        3, 0.012, 0.006, 20.0),
-    "lee_perry_smith_head": (SHARED / "lee_perry_smith_head.obj", 1, 0.006, 0.0015, 30.0),
+    "lee_perry_smith_head": (SHARED / "lee_perry_smith_head.obj", 1, 0.01, 0.0015, 30.0),
 }  # fmt: skip
 
 
 def wrinkle(name, path, subdivisions, d, depth, yaw, size, seed, out):
     surface = io.read_mesh(path)
-    radius = radius_map_from_mesh(surface, 512)
+    # R clipped to [0.4, 2.5]: the scan's neck cap is squashed 6× in UV, which would multiply
+    # the pore count (and the sampler's grid) there for a region nobody looks at
+    radius = radius_map_from_mesh(surface, 512, limits=(0.4, 2.5))
     levels = [
         WrinkleParams(d=d, theta=0.3, s=0.3, wrinkle_width=0.35, pore_width=0.4, dmin=0.6),
         WrinkleParams(d=d / 2, theta=1.2, s=0.2, wrinkle_width=0.25, pore_width=0.2, scale=0.3),
