@@ -3,19 +3,24 @@ pore strength (Eq. 12–13); the tiled rasteriser against a brute-force float64 
 vmap, determinism, gradients; bad input."""
 
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
+import jface
 from jface.wrinkles import (
     WrinkleParams,
     build_graph,
     draw,
+    draw_bands,
     make_pores,
     mellowmax,
     pore_strength,
+    radius_map_from_mesh,
     sample_pores,
     shape_function,
     simulate,
@@ -32,7 +37,8 @@ def level():
                            dmin=0.3, blend=0.6, skew=0.5, cushion=0.4, sperturb=1.0,
                            fperturb=150.0, snoise=0.05, fnoise=200.0)  # fmt: skip
     graph = build_graph(sample_pores(key, params.d, periodic=True))
-    weights = simulate(key, graph, params, n_steps=40, n_samples=200)
+    # the extraction tests' settings: compiled functions are shared across the two modules
+    weights = simulate(key, graph, params, n_steps=60, n_samples=3000)
     return graph, weights, params
 
 
@@ -175,10 +181,9 @@ def test_tiled_rasteriser_matches_brute_force(level):
     noise_bound = 0.9 * 0.001 * 1.5
     assert np.max(np.abs(got / 0.9 - ref)) < noise_bound / 0.9 + 1e-5
     assert ref.min() < -0.2 and ref.max() > 0.005  # there is something to compare
-    # other tile sizes and capacities give the same map (performance settings only)
-    for tile, capacity in ((N, 7), (16, 3)):
-        other = draw(key, graph, weights, quiet, (N, N), tile=tile, capacity=capacity)
-        np.testing.assert_allclose(other, got, atol=1e-5)
+    # another tile size and capacity give the same map (performance settings only)
+    other = draw(key, graph, weights, quiet, (N, N), tile=N, capacity=7)
+    np.testing.assert_allclose(other, got, atol=1e-5)
 
 
 def test_jit_eager_vmap_determinism_and_grad(level):
@@ -254,3 +259,138 @@ def test_old_json_without_drawing_fields_loads():
     (p,) = params_from_json('{"kind": "WrinkleParams", "levels": [{"d": 0.02}]}')
     assert float(p.scale) == pytest.approx(0.5) and float(p.wrinkle_width) == pytest.approx(0.3)
     assert math.isclose(float(p.d), 0.02, rel_tol=1e-6)
+
+
+# ---------------------------------------------------------------- maps larger than memory
+
+
+def test_bands_join_to_the_whole_map(level):
+    graph, weights, params = level
+    key = jax.random.key(1)
+    whole = draw(key, graph, weights, params, (N, N))  # compiled once for this module
+    parts = list(draw_bands(key, graph, weights, params, (N, N), band=20))
+    # bands of whole tiles (16 px) top to bottom, the last one cut at the map's edge
+    assert [(r, x.shape) for r, x in parts] == [(0, (32, N)), (32, (32, N))]
+    joined = np.concatenate([np.asarray(x) for _, x in parts])
+    np.testing.assert_allclose(joined, whole, atol=1e-7)  # the same arithmetic, fused otherwise
+    assert np.ptp(np.asarray(whole)) > 0.01  # there is a map to compare
+
+
+def test_exr_rows_writes_in_pieces_atomically(tmp_path):
+    from jface.io import exr_rows, read_exr
+
+    image = np.random.default_rng(0).normal(size=(40, 24)).astype(np.float32)
+    out = tmp_path / "m.exr"
+    with exr_rows(out, (40, 24), metadata={"seed": 7, "levels": [{"d": 0.01}]}) as write:
+        for r in range(0, 40, 16):
+            write(image[r : r + 16])
+    got = read_exr(out)
+    np.testing.assert_array_equal(got.channels["Y"], image)
+    assert got.metadata["seed"] == 7 and got.metadata["levels"] == [{"d": 0.01}]
+    # too few rows, a wrong width, too many rows: an error and no file (an old one is kept)
+    short = pytest.raises(ValueError, match="only 16 of the map's 40 rows")
+    with short, exr_rows(out, (40, 24)) as w:
+        w(image[:16])
+    np.testing.assert_array_equal(read_exr(out).channels["Y"], image)
+    for bad, message in (
+        (image[:8, :20], r"rows must have shape \(n, 24\)"),
+        (np.concatenate([image, image[:1]]), "more than the map's 40 rows"),
+    ):
+        with pytest.raises(ValueError, match=message), exr_rows(tmp_path / "w.exr", (40, 24)) as w:
+            w(bad)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.exr"]
+    with pytest.raises(ValueError, match="shape must be two"), exr_rows(tmp_path / "x", (0, 4)):
+        pass
+
+
+def test_cli_renders_large_maps_band_by_band(tmp_path, monkeypatch, level):
+    """Above BANDED_ABOVE the command draws (synthesize_bands), blends with the scan and writes
+    band by band: the same EXR as the whole-map path, with provenance and a preview PNG. (The
+    fixture's settings, so that the compiled simulation and drawing are shared.)"""
+    import argparse
+
+    from jface.cli import _wrinkles
+    from jface.io import read_exr, read_image, write_exr
+    from jface.wrinkles import save_params
+
+    params = tmp_path / "p.json"
+    save_params(params, [level[2]])
+    write_exr(tmp_path / "scan.exr", np.random.default_rng(3).normal(size=(N, N)).astype("f4"))
+    parser = argparse.ArgumentParser()
+    _wrinkles.register(parser.add_subparsers())
+
+    def render(out):
+        args = parser.parse_args(["wrinkles", "render", "--params", str(params), "--size",
+                                  str(N), "--base", str(tmp_path / "scan.exr"), "--out",
+                                  str(tmp_path / out), "--seed", "4", "--periodic",
+                                  "--steps", "60", "--samples", "3000"])  # fmt: skip
+        args.run(args)
+        return read_exr(tmp_path / out)
+
+    whole = render("whole.exr")
+    monkeypatch.setattr(_wrinkles, "BANDED_ABOVE", N // 2)
+    monkeypatch.setattr(_wrinkles, "_PREVIEW", N // 2)
+    monkeypatch.setattr("jface.wrinkles._synthesis.default_band", lambda shape: 20)
+    banded = render("banded.exr")
+    np.testing.assert_allclose(banded.channels["Y"], whole.channels["Y"], atol=1e-6)
+    assert banded.metadata["seed"] == 4 and banded.metadata["size"] == N
+    assert read_image(tmp_path / "banded.png").shape[:2] == (N // 2, N // 2)  # the preview
+
+
+# ---------------------------------------------------------------- radius map from UV stretch
+
+
+def _two_charts(n=8):
+    """A UV atlas of two charts: u < 0.5 maps to a plane 2× larger in 3-D (UV squashed, stretch
+    σ = 2), u > 0.5 to one of the same size (σ = 1)."""
+    g = np.linspace(0.0, 1.0, n + 1)
+    uu, vv = np.meshgrid(g, g)
+    i = (np.arange(n)[:, None] * (n + 1) + np.arange(n)[None]).ravel()
+    quad = np.concatenate([[i, i + 1, i + n + 2], [i, i + n + 2, i + n + 1]], axis=1).T
+    verts, faces, uvs = [], [], []
+    for k, (u0, scale) in enumerate(((0.0, 2.0), (0.5, 1.0))):
+        uv = np.stack([u0 + 0.5 * uu.ravel(), vv.ravel()], 1)
+        verts.append(np.concatenate([scale * uv + [3.0 * k, 0.0], np.zeros((len(uv), 1))], 1))
+        faces.append(quad + k * len(uv))
+        uvs.append(uv)
+    from jface.io import MeshData
+
+    return MeshData(np.concatenate(verts), np.concatenate(faces), np.concatenate(uvs))
+
+
+def test_radius_map_from_known_uv_stretch():
+    mesh = _two_charts()
+    r = np.asarray(radius_map_from_mesh(mesh, 64, smooth=1.0), np.float64)
+    assert r.shape == (64, 64)
+    # R = σ̄ / σ with σ̄ the geometric mean: 1/√2 on the squashed chart, √2 on the other
+    np.testing.assert_allclose(r[:, :26], 2**-0.5, rtol=1e-5)
+    np.testing.assert_allclose(r[:, 38:], 2**0.5, rtol=1e-5)
+    # pores sampled with it are evenly spaced on the surface: the same 3-D spacing in both charts
+    pores = sample_pores(jax.random.key(0), 0.04, r, periodic=False)
+    uv = np.asarray(pores.positions)[: int(pores.count)]
+    xyz = uv * np.where(uv[:, :1] < 0.5, 2.0, 1.0)
+    spacing = []
+    for chart in (uv[:, 0] < 0.45, uv[:, 0] > 0.55):
+        d, _ = cKDTree(xyz[chart]).query(xyz[chart], k=2)
+        spacing.append(np.median(d[:, 1]))
+    assert 0.85 < spacing[0] / spacing[1] < 1.15, spacing  # uniform UV spacing would give 2
+    # a real mesh: positive, finite, geometric mean 1 where the face covers the map
+    from jface.io import read_mesh
+
+    face = read_mesh(Path(jface.__file__).parent / "data" / "mediapipe_canonical_face.obj")
+    r = np.asarray(radius_map_from_mesh(face, 128, smooth=0.0))
+    assert np.all(np.isfinite(r)) and r.min() > 0 and np.ptp(r) > 0.5
+    covered = r != 1.0
+    assert covered.mean() > 0.3 and abs(np.mean(np.log(r[covered]))) < 1e-3
+
+
+def test_radius_map_bad_input(unchecked):
+    mesh = _two_charts()
+    with pytest.raises(ValueError, match="no UV coordinates"):
+        radius_map_from_mesh(mesh._replace(uv=None), 64)
+    with pytest.raises(TypeError, match="mesh must have vertices, faces and uv"):
+        radius_map_from_mesh(np.zeros((3, 3)), 64)
+    with pytest.raises(ValueError, match="size"):
+        radius_map_from_mesh(mesh, 0)
+    with pytest.raises(ValueError, match="maps every triangle to a point"):
+        radius_map_from_mesh(mesh._replace(uv=np.zeros_like(mesh.uv)), 64)

@@ -20,6 +20,7 @@ from jface.wrinkles import (
     gabor_kernels,
     gaussian_blur,
     label_components,
+    sample_pores,
     synthesize,
 )
 
@@ -68,10 +69,15 @@ def test_opening_and_components_match_scipy_and_skimage():
     assert len(pairs) == ref.max() == len(np.unique(ours[opened]))  # the same partition
 
 
+def _simulated(params):
+    """A simulated 256² map; every test here simulates with the drawing tests' α_d and settings,
+    so the compiled sampling, graph, simulation and drawing are shared."""
+    return synthesize(jax.random.key(0), [params], (256, 256), n_steps=60, n_samples=3000)
+
+
 @pytest.mark.parametrize("theta", [0.4, 2.2])
 def test_orientation_recovered_on_simulated_map(theta):
-    params = WrinkleParams(d=0.03, theta=theta, s=0.05, wrinkle_width=0.4, snoise=0.001)
-    syn = synthesize(jax.random.key(0), [params], (256, 256), n_steps=60, n_samples=3000)
+    syn = _simulated(WrinkleParams(d=0.05, theta=theta, s=0.05, wrinkle_width=0.4, snoise=0.001))
     got = extract_orientation(syn.displacement, crop=256, frequency=0.1)
     err = (float(got.theta[0, 0]) - theta + math.pi / 2) % math.pi - math.pi / 2
     assert abs(math.degrees(err)) < 5.0
@@ -81,7 +87,7 @@ def test_orientation_recovered_on_simulated_map(theta):
 def test_pores_recovered_on_simulated_map():
     params = WrinkleParams(d=0.05, theta=0.5, s=0.3, wrinkle_width=0.1, pore_width=0.5,
                            dmin=1.0, blend=0.0, snoise=0.001, sperturb=0.001)  # fmt: skip
-    syn = synthesize(jax.random.key(0), [params], (256, 256), n_steps=30, n_samples=500)
+    syn = _simulated(params)
     pores = syn.levels[0].pores
     known = np.asarray(pores.positions)[: int(pores.count)] * 256
     found = extract_pores(syn.displacement)
@@ -90,9 +96,9 @@ def test_pores_recovered_on_simulated_map():
     assert np.mean(dist <= 2.0) >= 0.9
     assert int(found.count) <= 1.1 * len(known)  # not by flooding the map with detections
     # they seed the next level's sampling
-    again = synthesize(jax.random.key(1), [params], (64, 64), initial=found, periodic=False,
-                       n_steps=5, n_samples=100)  # fmt: skip
-    first = np.asarray(again.levels[0].pores.positions)[: int(found.count)]
+    again = sample_pores(jax.random.key(1), 0.03, initial=found, periodic=False)
+    assert int(again.count) > int(found.count)
+    first = np.asarray(again.positions)[: int(found.count)]
     np.testing.assert_allclose(first, np.asarray(found.positions)[: int(found.count)])
 
 

@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jface.io import (
+    exr_rows,
     provenance,
     read_map,
     read_mesh,
@@ -29,13 +30,18 @@ from jface.wrinkles import (
     extract_orientation,
     find_pores,
     load_params,
+    radius_map_from_mesh,
     sample_pores,
     save_params,
     simulate,
     synthesize,
+    synthesize_bands,
 )
 
 _OVERRIDES = ("d", "theta", "s", "dist", "cont", "sim", "cross", "deposit", "decay")
+BANDED_ABOVE = 4096  #: maps with more rows are drawn and written band by band (bounded memory)
+_PREVIEW = 2048  # side of the PNG / mesh preview of a banded map
+_RADIUS_SIDE = 1024  # radius maps from a mesh's UV stretch are smooth: this resolution suffices
 
 
 def register(subparsers) -> None:
@@ -69,11 +75,16 @@ def register(subparsers) -> None:
     )
     ren.add_argument("--params", required=True, help="JSON file of WrinkleParams levels")
     ren.add_argument("--out", required=True, help="output EXR (PNG and mesh beside it)")
-    ren.add_argument("--size", type=int, default=1024, help="map side in pixels (16 to 16384)")
+    ren.add_argument("--size", type=int, default=1024, help="map side in pixels (16 to 16384; "
+                     f"above {BANDED_ABOVE} drawn and written band by band)")  # fmt: skip
     ren.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     ren.add_argument("--base", help="scan displacement EXR (one channel) to blend with (§5)")
     ren.add_argument("--pores", help="pores JSON from 'jface wrinkles extract' seeding level 0")
-    ren.add_argument("--mesh", help="UV-mapped mesh (OBJ/PLY) to displace with the result")
+    ren.add_argument(
+        "--mesh",
+        help="UV-mapped mesh (OBJ/PLY): pores evenly spaced on its surface "
+        "(radius map from the UV stretch) and the mesh displaced with the result",
+    )
     ren.add_argument("--depth", type=float, default=0.001,
                      help="mesh displacement per map unit, as a fraction of the mesh's "
                      "bounding-box diagonal (default 0.001)")  # fmt: skip
@@ -192,35 +203,65 @@ def _render(args: argparse.Namespace) -> None:
     if base is not None and base.shape != (args.size, args.size):
         raise ValueError(f"--base is {base.shape}, expected ({args.size}, {args.size}) (--size)")
     mesh = read_mesh(args.mesh) if args.mesh else None
-    if mesh is not None and mesh.uv is None:
-        raise ValueError(f"{args.mesh} has no UV coordinates; --mesh needs a UV-mapped mesh")
+    radius_map = None
+    if mesh is not None:
+        if mesh.uv is None:
+            raise ValueError(f"{args.mesh} has no UV coordinates; --mesh needs a UV-mapped mesh")
+        if args.periodic:
+            raise ValueError("--periodic does not go with --mesh (a UV atlas does not tile)")
+        radius_map = radius_map_from_mesh(mesh, min(args.size, _RADIUS_SIDE))
     initial = _read_pores(args.pores, args.periodic) if args.pores else None
     start = time.perf_counter()
-    with tqdm(total=1, desc="simulate + draw", leave=False):
-        syn = synthesize(
-            jax.random.key(args.seed), levels, (args.size, args.size), initial=initial,
-            periodic=args.periodic, n_steps=args.steps, n_samples=args.samples,
-        )  # fmt: skip
-    disp = syn.displacement if base is None else blend_with_scan(base, syn.displacement)
-    disp = np.asarray(disp)
     inputs = tuple(x for x in (args.params, args.base, args.mesh, args.pores) if x)
     meta = provenance(
         seed=args.seed, levels=[p.to_dict() for p in levels], size=args.size, base=args.base,
-        periodic=args.periodic, steps=args.steps, samples=args.samples,
+        mesh=args.mesh, periodic=args.periodic, steps=args.steps, samples=args.samples,
     )  # fmt: skip
-    write_exr(out, disp, metadata=meta, protect=inputs)
-    write_png(out.with_suffix(".png"), shade(disp), metadata=meta)
+    run = dict(initial=initial, radius_map=radius_map, periodic=args.periodic,
+               n_steps=args.steps, n_samples=args.samples)  # fmt: skip
+    key = jax.random.key(args.seed)
+    shape = (args.size, args.size)
+    if args.size > BANDED_ABOVE:
+        counts, preview = _render_bands(key, levels, shape, base, out, meta, inputs, run)
+    else:
+        with tqdm(total=1, desc="simulate + draw", leave=False):
+            syn = synthesize(key, levels, shape, **run)
+        disp = syn.displacement if base is None else blend_with_scan(base, syn.displacement)
+        preview = np.asarray(disp)
+        write_exr(out, preview, metadata=meta, protect=inputs)
+        counts = [int(lv.pores.count) for lv in syn.levels]
+    write_png(out.with_suffix(".png"), shade(preview), metadata=meta)
     if mesh is not None:
         from jface.mesh import displace
 
         diag = float(np.linalg.norm(np.ptp(np.asarray(mesh.vertices), axis=0)))
         # maps are drawn with v down the rows; mesh UVs have v up
-        moved = displace(mesh, disp[::-1], scale=args.depth * diag)
+        moved = displace(mesh, preview[::-1], scale=args.depth * diag)
         comment = f"jface {meta['jface_version']} wrinkles render, seed {args.seed}"
         write_mesh(out.with_suffix(".obj"), np.asarray(moved.vertices), np.asarray(moved.faces),
                    uv=np.asarray(moved.uv), comment=comment, protect=inputs)  # fmt: skip
-    counts = ", ".join(f"{int(lv.pores.count)} pores" for lv in syn.levels)
-    print(f"wrinkles render: {counts}; {args.size}² in {time.perf_counter() - start:.1f} s → {out}")
+    pores = ", ".join(f"{n} pores" for n in counts)
+    print(f"wrinkles render: {pores}; {args.size}² in {time.perf_counter() - start:.1f} s → {out}")
+
+
+def _render_bands(key, levels, shape, base, out, meta, inputs, run):
+    """Draw and write the map band by band; returns the pore counts and a ≤ 2048² preview (for
+    the PNG and the mesh), so the whole map is never in memory."""
+    step = -(-shape[0] // _PREVIEW)
+    bands = synthesize_bands(key, levels, shape, **run)
+    preview = []
+    with (
+        exr_rows(out, shape, metadata=meta, protect=inputs) as write,
+        tqdm(total=shape[0], desc="draw + write", unit="row", leave=False) as bar,
+    ):
+        for first, rows in bands.rows:
+            if base is not None:
+                rows = blend_with_scan(base, rows, first_row=first)
+            rows = np.asarray(rows)
+            write(rows)
+            preview.append(rows[(-first) % step :: step, ::step])
+            bar.update(rows.shape[0])
+    return [int(sim.pores.count) for sim in bands.levels], np.concatenate(preview)
 
 
 def _read_pores(path, periodic):

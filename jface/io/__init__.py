@@ -2,7 +2,7 @@
 place that touches disk (besides the command line)."""
 
 from jface.io._arrays import load_arrays, save_arrays
-from jface.io._exr import ExrImage, read_exr, read_map, write_exr
+from jface.io._exr import ExrImage, exr_rows, read_exr, read_map, write_exr
 from jface.io._files import atomic_path, write_json
 from jface.io._images import read_image, write_png
 from jface.io._json import read_json
@@ -13,6 +13,7 @@ __all__ = [
     "ExrImage",
     "MeshData",
     "atomic_path",
+    "exr_rows",
     "load_arrays",
     "provenance",
     "read_exr",

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import Imath
 import numpy as np
 import OpenEXR
 
@@ -99,6 +102,85 @@ def write_exr(
     with atomic_path(path, protect=protect) as tmp:
         OpenEXR.File(header, channels).write(str(tmp))
     return path
+
+
+# The scanline writer below uses the bindings' classic OutputFile API (writePixels), the one that
+# writes a file in pieces; it knows no ZSTD, so "zstd" falls back to ZIP there.
+_CLASSIC_COMPRESSION = {
+    "none": Imath.Compression.NO_COMPRESSION,
+    "zip": Imath.Compression.ZIP_COMPRESSION,
+    "piz": Imath.Compression.PIZ_COMPRESSION,
+    "zstd": Imath.Compression.ZIP_COMPRESSION,
+}
+
+
+@contextlib.contextmanager
+def exr_rows(
+    path: str | os.PathLike,
+    shape: tuple[int, int],
+    *,
+    compression: str = "zip",
+    metadata: dict[str, Any] | None = None,
+    protect: tuple[str | os.PathLike, ...] = (),
+) -> Iterator[Callable[[Any], None]]:
+    """Write a single-channel float32 map (channel "Y") to an OpenEXR scanline file band by band,
+    so that a map larger than memory is never held whole. Atomic: the file appears only when
+    every row was written and the block succeeded.
+
+    Usage::
+
+        with exr_rows("big.exr", (16384, 16384), metadata=meta) as write:
+            for band in bands:          # (rows, 16384) arrays, top to bottom
+                write(band)
+
+    Args:
+        path: output file.
+        shape: ``(H, W)`` of the whole map.
+        compression: "zip" (default), "piz", "none" ("zstd" writes ZIP here).
+        metadata: provenance, stored like :func:`write_exr`'s.
+        protect: input files this output must not overwrite.
+
+    Yields:
+        ``write(rows)``: appends an ``(n, W)`` array of the next ``n`` rows.
+
+    Raises:
+        ValueError: bad shape or compression, a band of the wrong width, more rows than ``H``,
+            or fewer than ``H`` rows written when the block ends.
+    """
+    if compression not in _CLASSIC_COMPRESSION:
+        raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}")
+    if not (
+        isinstance(shape, tuple | list)
+        and len(shape) == 2
+        and all(isinstance(n, int | np.integer) and n > 0 for n in shape)
+    ):
+        raise ValueError(f"shape must be two positive integers (H, W), got {shape!r}")
+    h, w = int(shape[0]), int(shape[1])
+    header = OpenEXR.Header(w, h)
+    header["channels"] = {"Y": Imath.Channel(Imath.PixelType(Imath.PixelType.FLOAT))}
+    header["compression"] = Imath.Compression(_CLASSIC_COMPRESSION[compression])
+    for key, value in (metadata or {}).items():
+        header[_PREFIX + key] = json.dumps(value).encode()
+    done = 0
+
+    def write(rows: Any) -> None:
+        nonlocal done
+        band = np.ascontiguousarray(rows, dtype=np.float32)
+        if band.ndim != 2 or band.shape[1] != w:
+            raise ValueError(f"rows must have shape (n, {w}), got {band.shape}")
+        if done + band.shape[0] > h:
+            raise ValueError(f"more than the map's {h} rows written ({done} + {band.shape[0]})")
+        out.writePixels({"Y": band.tobytes()}, band.shape[0])
+        done += band.shape[0]
+
+    with atomic_path(Path(path), protect=protect) as tmp:
+        out = OpenEXR.OutputFile(str(tmp), header)
+        try:
+            yield write
+        finally:
+            out.close()
+        if done != h:
+            raise ValueError(f"only {done} of the map's {h} rows were written")
 
 
 def read_exr(path: str | os.PathLike) -> ExrImage:

@@ -17,6 +17,7 @@ from jface.wrinkles._drawing import (
     BETA,
     N_HAT,
     draw,
+    draw_bands,
     mellowmax,
     pore_strength,
     shape_function,
@@ -36,6 +37,7 @@ from jface.wrinkles._extraction import (
 )
 from jface.wrinkles._fit import PAPER_NAMES, WrinkleFit, fit_wrinkles
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
+from jface.wrinkles._mesh_radius import radius_map_from_mesh
 from jface.wrinkles._params import (
     PARAMETER_RANGES,
     WrinkleParams,
@@ -54,7 +56,14 @@ from jface.wrinkles._simulation import (
     orientation_density,
     simulate,
 )
-from jface.wrinkles._synthesis import Level, Synthesis, synthesize
+from jface.wrinkles._synthesis import (
+    Bands,
+    Level,
+    Simulated,
+    Synthesis,
+    synthesize,
+    synthesize_bands,
+)
 from jface.wrinkles._variation import perlin_variation
 
 __all__ = [
@@ -63,12 +72,14 @@ __all__ = [
     "N_SAMPLES",
     "PAPER_NAMES",
     "PARAMETER_RANGES",
+    "Bands",
     "GraphSpec",
     "Level",
     "Orientations",
     "PoreCandidates",
     "PoreGraph",
     "Pores",
+    "Simulated",
     "Synthesis",
     "WrinkleFit",
     "WrinkleParams",
@@ -79,6 +90,7 @@ __all__ = [
     "continuation_kernel",
     "default_capacity",
     "draw",
+    "draw_bands",
     "extract_orientation",
     "extract_pores",
     "find_pores",
@@ -97,10 +109,12 @@ __all__ = [
     "params_to_json",
     "perlin_variation",
     "pore_strength",
+    "radius_map_from_mesh",
     "sample_pores",
     "save_params",
     "shape_function",
     "simulate",
     "stack_params",
     "synthesize",
+    "synthesize_bands",
 ]

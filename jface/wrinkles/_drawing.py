@@ -19,6 +19,7 @@ resolution works with memory bounded by the tile batch.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import equinox as eqx
@@ -38,7 +39,8 @@ BETA = 20.0  #: β of Eq. 10
 N_HAT = 16  #: N̂_f of Eq. 10, fragments expected on top of each other
 N_VERTICES = 8  #: perturbed centre-line vertices per wrinkle
 _PERTURB_OCTAVES = 3
-_MAX_SIDE = 65536  # largest map side drawn in one call (16k maps are drawn in bands)
+_MAX_SIDE = 65536  # largest map side (16k maps are drawn in bands, see draw_bands)
+_TILE = 16  # default screen tile: the fastest on CPU (fewer wasted primitive tests than 32)
 
 
 def shape_function(x: ArrayLike, *, bulge: bool = True) -> Float[Array, "..."]:
@@ -265,12 +267,11 @@ def _fragments(prims: Primitives, q, periodic, bulge):
     perp = rel - t[..., None] * prims.delta[None]
     # perturbed centre line: offset interpolated between the vertices, along the normal
     normal = jnp.stack([-prims.delta[:, 1], prims.delta[:, 0]], -1) / jnp.sqrt(safe_len2)[:, None]
+    # (linear interpolation as a sum of hat functions: no gather, which is slow on CPU)
     u = t * (N_VERTICES - 1)
-    j = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, N_VERTICES - 2)
-    f = u - j.astype(jnp.float32)
-    o0 = jnp.take_along_axis(prims.offsets[None], j[..., None], -1)[..., 0]
-    o1 = jnp.take_along_axis(prims.offsets[None], j[..., None] + 1, -1)[..., 0]
-    perp = perp - ((1.0 - f) * o0 + f * o1)[..., None] * normal[None]
+    hat = jnp.maximum(1.0 - jnp.abs(u[..., None] - jnp.arange(N_VERTICES, dtype=jnp.float32)), 0)
+    offset = jnp.sum(hat * prims.offsets[None], -1)
+    perp = perp - offset[..., None] * normal[None]
     # pore skew: distances along the primary orientation shrink by the stretch factor
     along = jnp.sum(perp * prims.axis[None], -1)
     across = perp[..., 0] * prims.axis[None, :, 1] - perp[..., 1] * prims.axis[None, :, 0]
@@ -291,23 +292,45 @@ def _smoothstep(x):
 
 
 class _Acc(NamedTuple):
+    """Running Eq. 10 sums of one pixel batch: per side (valley, bulge) the maximum ``m``, the sum
+    ``Σ exp(β (x_i − m))`` over the fragments on that side and their count; ``n`` covered in all
+    (a fragment on the other side adds ``x_i = 0``)."""
+
     m_valley: Array
     s_valley: Array
+    n_valley: Array
     m_bulge: Array
     s_bulge: Array
+    n_bulge: Array
     n: Array
 
 
 def _accumulate(acc: _Acc, s, covered, beta):
-    def side(m, total, x):
-        x = jnp.where(covered, x, 0.0)
-        m_new = jnp.maximum(m, jnp.max(x, -1))
-        add = jnp.sum(jnp.where(covered, jnp.exp(beta * (x - m_new[:, None])), 0.0), -1)
-        return m_new, total * jnp.exp(beta * (m - m_new)) + add
+    valley = covered & (s < 0)
+    bulge = covered & (s > 0)
+    mv = jnp.maximum(acc.m_valley, jnp.max(jnp.where(valley, -s, 0.0), -1))
+    mb = jnp.maximum(acc.m_bulge, jnp.max(jnp.where(bulge, s, 0.0), -1))
+    # one exponential per fragment: each lies on one side (Eq. 11)
+    e = jnp.exp(beta * (jnp.abs(s) - jnp.where(s < 0, mv[:, None], mb[:, None])))
+    sv = acc.s_valley * jnp.exp(beta * (acc.m_valley - mv)) + jnp.sum(jnp.where(valley, e, 0), -1)
+    sb = acc.s_bulge * jnp.exp(beta * (acc.m_bulge - mb)) + jnp.sum(jnp.where(bulge, e, 0), -1)
 
-    mv, sv = side(acc.m_valley, acc.s_valley, jnp.maximum(-s, 0.0))
-    mb, sb = side(acc.m_bulge, acc.s_bulge, jnp.maximum(s, 0.0))
-    return _Acc(mv, sv, mb, sb, acc.n + jnp.sum(covered, -1).astype(jnp.float32))
+    def count(mask):
+        return jnp.sum(mask, -1).astype(jnp.float32)
+
+    return _Acc(mv, sv, acc.n_valley + count(valley), mb, sb, acc.n_bulge + count(bulge),
+                acc.n + count(covered))  # fmt: skip
+
+
+def _blend(acc: _Acc, beta, n_hat):
+    """Eq. 11: mellowmax of the bulges minus mellowmax of the valleys (Eq. 10 each)."""
+
+    def side(m, total, n_side):  # the other side's fragments count as zeros
+        return _mm_finish(m, total + (acc.n - n_side) * jnp.exp(-beta * m), acc.n, beta, n_hat)
+
+    return side(acc.m_bulge, acc.s_bulge, acc.n_bulge) - side(
+        acc.m_valley, acc.s_valley, acc.n_valley
+    )
 
 
 def _render_tiles(
@@ -335,26 +358,15 @@ def _render_tiles(
             return _accumulate(acc, s, covered, beta), None
 
         # a static number of passes (not a while loop) keeps the map reverse-differentiable
-        acc, _ = lax.scan(
-            body, _Acc(zero, zero, zero, zero, zero), jnp.arange(passes, dtype=jnp.int32)
-        )
-        valley = _mm_finish(acc.m_valley, acc.s_valley, acc.n, beta, n_hat)
-        bulge_ = _mm_finish(acc.m_bulge, acc.s_bulge, acc.n, beta, n_hat)
-        return (bulge_ - valley).reshape(tile, tile)
+        acc, _ = lax.scan(body, _Acc(*[zero] * 7), jnp.arange(passes, dtype=jnp.int32))
+        return _blend(acc, beta, n_hat).reshape(tile, tile)
 
     batch = max(1, (1 << 20) // (tile * tile * capacity))
     return lax.map(one, tile_ids, batch_size=min(batch, tile_ids.shape[0]))
 
 
-def _assemble(tiles, shape, tile):
-    gy, gx = -(-shape[0] // tile), -(-shape[1] // tile)
-    img = tiles.reshape(gy, gx, tile, tile).transpose(0, 2, 1, 3).reshape(gy * tile, gx * tile)
-    return img[: shape[0], : shape[1]]
-
-
-def _pixel_uv(shape, rows=None):
+def _pixel_uv(shape, rows):
     h, w = shape
-    rows = jnp.arange(h) if rows is None else rows
     y = (rows.astype(jnp.float32) + 0.5) / h
     x = (jnp.arange(w, dtype=jnp.float32) + 0.5) / w
     return jnp.stack(jnp.meshgrid(x, y, indexing="xy"), -1)
@@ -412,8 +424,11 @@ def _check_draw(key, graph, weights, params, shape, opts: DrawOptions):
         _checks.integer(shape[1], "shape[1]", low=1, high=_MAX_SIDE),
     )
     if opts.tile is None:  # periodic binning wraps by whole tiles: the tile must divide the map
-        side = math.gcd(*shape) if graph.periodic else 32
-        tile = max(t for t in range(1, 33) if side % t == 0)
+        # above 4096 px the tile grows with the map, so that a primitive still touches only a
+        # few tiles: the bins (primitives × span²) would otherwise grow like the map itself
+        top = _TILE << max(0, (max(shape) // 4096).bit_length() - 1)
+        side = math.gcd(*shape) if graph.periodic else top
+        tile = max(t for t in range(1, top + 1) if side % t == 0)
     else:
         tile = _checks.integer(opts.tile, "tile", low=1, high=1024)
     if graph.periodic and (shape[0] % tile or shape[1] % tile):
@@ -464,8 +479,9 @@ def draw(
         params: the level's :class:`WrinkleParams`.
         shape: ``(H, W)`` of the map covering the unit square (static).
         bulge: Eq. 9's "ours, bulge" profile (True) or "ours, no bulge" (the paper's finest level).
-        tile: screen-tile side in pixels (static; performance only). Default 32, or for a
-            periodic graph the largest divisor ≤ 32 of both sides (periodic maps need one).
+        tile: screen-tile side in pixels (static; performance only). Default 16 (32 from
+            8192 px, 64 from 16384 px, ...), or for a periodic graph the largest divisor of both
+            sides up to that (periodic maps need one).
         capacity: primitives evaluated per tile and pass (static; performance only).
         span: most tiles per axis a primitive's bounding box may touch (static).
         passes: passes per tile, so a tile holds up to ``passes · capacity`` primitives (static).
@@ -494,23 +510,45 @@ def _static_sizes(prims, shape, opts: DrawOptions, periodic: bool) -> DrawOption
     """Fill in ``span`` and ``passes``: exact for concrete primitives, else always sufficient."""
     concrete = not any(_checks.is_traced(x) for x in jax.tree.leaves(prims))
     span, passes = opts.span, opts.passes
-    if span is None:
+    if concrete:  # a span too small is found here, before anything is compiled
+        need = needed_span(prims, shape, tile=opts.tile, bulge=opts.bulge, periodic=periodic)
+        if span is not None and span < need:
+            raise ValueError(
+                f"a wrinkle or pore touches {need} tiles per axis, more than span={span}; pass "
+                "a larger span (or a larger tile) to draw"
+            )
+        span = need if span is None else span
+    elif span is None:
         span = max(-(-shape[0] // opts.tile), -(-shape[1] // opts.tile))
-        if concrete:
-            span = needed_span(prims, shape, tile=opts.tile, bulge=opts.bulge, periodic=periodic)
     if passes is None:
         passes = -(-prims.valid.shape[0] // opts.capacity)
         if concrete:
-            bins = _bin(prims, shape, opts._replace(span=span), periodic)
+            bins = _bin(prims, shape, opts.tile, span, opts.bulge, periodic)
             passes = max(1, -(-int(jnp.max(bins.count)) // opts.capacity))
-    return opts._replace(span=span, passes=passes)
+    # β and N̂ as arrays: traced, so that they do not each compile the rasteriser anew
+    return opts._replace(span=span, passes=passes, beta=jnp.float32(opts.beta),
+                         n_hat=jnp.float32(opts.n_hat))  # fmt: skip
 
 
 @eqx.filter_jit
-def _bin(prims, shape, opts, periodic):
-    return bin_primitives(
-        prims, shape, tile=opts.tile, span=opts.span, bulge=opts.bulge, periodic=periodic
-    )
+def _bin(prims, shape, tile, span, bulge, periodic):
+    return bin_primitives(prims, shape, tile=tile, span=span, bulge=bulge, periodic=periodic)
+
+
+def _tile_rows(key, prims, bins, params, shape, opts, periodic, first, n):
+    """Finished rows of ``n`` tile rows from tile row ``first`` (rows past the map repeat the
+    last tile row): ``(n · tile, W)``."""
+    tile = opts.tile
+    gy, gx = -(-shape[0] // tile), -(-shape[1] // tile)
+    ty = jnp.minimum(first + jnp.arange(n, dtype=jnp.int32), gy - 1)
+    tile_ids = (ty[:, None] * gx + jnp.arange(gx, dtype=jnp.int32)[None]).reshape(-1)
+    tiles = _render_tiles(
+        prims, bins, tile_ids, shape, tile=tile, capacity=opts.capacity, passes=opts.passes,
+        bulge=opts.bulge, periodic=periodic, beta=opts.beta, n_hat=opts.n_hat,
+    )  # fmt: skip
+    band = tiles.reshape(n, gx, tile, tile).transpose(0, 2, 1, 3).reshape(n * tile, gx * tile)
+    rows = first * tile + jnp.arange(n * tile, dtype=jnp.int32)
+    return _finish(key, band[:, : shape[1]], params, _pixel_uv(shape, rows), periodic)
 
 
 @eqx.filter_jit
@@ -518,13 +556,8 @@ def _draw(key, prims, params, shape, opts, periodic):
     bins = bin_primitives(
         prims, shape, tile=opts.tile, span=opts.span, bulge=opts.bulge, periodic=periodic
     )
-    g = bins.count.shape[0]
-    tiles = _render_tiles(
-        prims, bins, jnp.arange(g, dtype=jnp.int32), shape, tile=opts.tile, capacity=opts.capacity,
-        passes=opts.passes, bulge=opts.bulge, periodic=periodic, beta=opts.beta, n_hat=opts.n_hat,
-    )  # fmt: skip
-    blended = _assemble(tiles, shape, opts.tile)
-    out = _finish(key, blended, params, _pixel_uv(shape), periodic)
+    gy = -(-shape[0] // opts.tile)
+    out = _tile_rows(key, prims, bins, params, shape, opts, periodic, 0, gy)[: shape[0]]
     out = eqx.error_if(
         out,
         bins.overflow,
@@ -537,3 +570,65 @@ def _draw(key, prims, params, shape, opts, periodic):
         f"a tile holds more than passes·capacity={opts.passes * opts.capacity} wrinkles and "
         "pores; pass larger passes or capacity (or a smaller tile) to draw",
     )
+
+
+_band_rows = eqx.filter_jit(_tile_rows)
+
+
+def default_band(shape: tuple[int, int]) -> int:
+    """Rows per band of :func:`draw_bands`: about 8 Mi pixels (32 MiB of float32) per band."""
+    return max(32, min(shape[0], (1 << 23) // max(shape[1], 1)) // 32 * 32)
+
+
+def draw_bands(
+    key: jax.Array,
+    graph: PoreGraph,
+    weights: ArrayLike,
+    params: WrinkleParams,
+    shape: tuple[int, int],
+    *,
+    band: int | None = None,
+    bulge: bool = True,
+    tile: int | None = None,
+    capacity: int = 16,
+    beta: float = BETA,
+    n_hat: int = N_HAT,
+) -> Iterator[tuple[int, Float[Array, "b W"]]]:
+    """:func:`draw` in horizontal bands, top to bottom, for maps larger than memory (16k²).
+
+    The primitives are made and binned to screen tiles once; each band then renders only its
+    own tiles, so no more than one band (plus the primitives and their bins) is held at a time.
+    The bands joined are :func:`draw`'s map with the same arguments (a band is the same
+    computation on a subset of the tiles).
+
+    Args:
+        key, graph, weights, params, shape, bulge, tile, capacity, beta, n_hat: as :func:`draw`
+            (concrete values; not for use under ``jit``/``vmap``).
+        band: rows per band, rounded up to a multiple of the tile (default
+            about 32 MiB of float32 per band).
+
+    Yields:
+        ``(first_row, rows)`` with ``rows`` of shape ``(b, W)``; the last band may be shorter.
+
+    Raises:
+        As :func:`draw`, and ValueError for a band < 1.
+    """
+    opts = DrawOptions(bulge, tile, capacity, None, None, beta, n_hat)
+    key, w, shape, opts = _check_draw(key, graph, weights, params, shape, opts)
+    band = default_band(shape) if band is None else _checks.integer(band, "band", low=1)
+    if _checks.is_traced(w) or any(_checks.is_traced(x) for x in jax.tree.leaves(params)):
+        raise TypeError("draw_bands takes concrete inputs (it is not for use under jit/vmap)")
+    return _bands(key, graph, w, params, shape, opts, band)
+
+
+def _bands(key, graph, weights, params, shape, opts, band):
+    k_perturb, k_noise = jax.random.split(key)
+    prims = primitives(k_perturb, graph, weights, params)
+    opts = _static_sizes(prims, shape, opts, graph.periodic)
+    bins = _bin(prims, shape, opts.tile, opts.span, opts.bulge, graph.periodic)
+    n = -(-min(band, shape[0]) // opts.tile)  # tile rows per band
+    for first in range(0, -(-shape[0] // opts.tile), n):
+        at_row = jnp.asarray(first, jnp.int32)  # traced: one compilation for every band
+        rows = _band_rows(k_noise, prims, bins, params, shape, opts, graph.periodic, at_row, n)
+        start = first * opts.tile
+        yield start, rows[: shape[0] - start]

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -10,7 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from jface import _checks
-from jface.wrinkles._drawing import draw
+from jface.wrinkles._drawing import default_band, draw, draw_bands
 from jface.wrinkles._graph import PoreGraph, build_graph
 from jface.wrinkles._params import WrinkleParams
 from jface.wrinkles._sampling import Pores, sample_pores
@@ -31,6 +32,39 @@ class Synthesis(eqx.Module):
 
     displacement: Float[Array, "H W"]
     levels: tuple[Level, ...]
+
+
+class Simulated(NamedTuple):
+    """One simulated level before drawing: its pores, graph and edge weights."""
+
+    pores: Pores
+    graph: PoreGraph
+    weights: Float[Array, " E"]
+
+
+def _check_levels(key, levels, initial):
+    key = _checks.key(key)
+    if isinstance(levels, WrinkleParams):
+        levels = [levels]
+    if not levels or not all(isinstance(p, WrinkleParams) for p in levels):
+        raise TypeError("levels must be a WrinkleParams or a non-empty list of them")
+    if initial is not None and not isinstance(initial, Pores):
+        raise TypeError(f"initial must be Pores, got {_checks.describe(initial)}")
+    return key, list(levels)
+
+
+def _simulate_levels(key, levels, initial, radius_map, periodic, n_steps, n_samples):
+    """Per level (coarse to fine): the simulation, the drawing key and the bulge flag."""
+    pores = initial
+    out = []
+    for i, params in enumerate(levels):
+        k_pores, k_sim, k_draw = jax.random.split(jax.random.fold_in(key, i), 3)
+        pores = sample_pores(k_pores, params.d, radius_map, initial=pores, periodic=periodic)
+        graph = build_graph(pores)
+        weights = simulate(k_sim, graph, params, n_steps=n_steps, n_samples=n_samples)
+        bulge = i < len(levels) - 1 or len(levels) == 1
+        out.append((Simulated(pores, graph, weights), k_draw, bulge))
+    return out
 
 
 def synthesize(
@@ -64,23 +98,67 @@ def synthesize(
     Returns:
         :class:`Synthesis`.
     """
-    key = _checks.key(key)
-    if isinstance(levels, WrinkleParams):
-        levels = [levels]
-    if not levels or not all(isinstance(p, WrinkleParams) for p in levels):
-        raise TypeError("levels must be a WrinkleParams or a non-empty list of them")
-    if initial is not None and not isinstance(initial, Pores):
-        raise TypeError(f"initial must be Pores, got {_checks.describe(initial)}")
-    pores = initial
+    key, levels = _check_levels(key, levels, initial)
     done = []
     total = None
-    for i, params in enumerate(levels):
-        k_pores, k_sim, k_draw = jax.random.split(jax.random.fold_in(key, i), 3)
-        pores = sample_pores(k_pores, params.d, radius_map, initial=pores, periodic=periodic)
-        graph = build_graph(pores)
-        weights = simulate(k_sim, graph, params, n_steps=n_steps, n_samples=n_samples)
-        bulge = i < len(levels) - 1 or len(levels) == 1
-        disp = draw(k_draw, graph, weights, params, shape, bulge=bulge)
-        done.append(Level(pores, graph, weights, disp))
+    sims = _simulate_levels(key, levels, initial, radius_map, periodic, n_steps, n_samples)
+    for params, (sim, k_draw, bulge) in zip(levels, sims, strict=True):
+        disp = draw(k_draw, sim.graph, sim.weights, params, shape, bulge=bulge)
+        done.append(Level(sim.pores, sim.graph, sim.weights, disp))
         total = disp if total is None else total + disp
     return Synthesis(jnp.asarray(total), tuple(done))
+
+
+class Bands(NamedTuple):
+    """A multi-level map drawn band by band (:func:`synthesize_bands`).
+
+    Attributes:
+        levels: the simulated levels.
+        rows: iterator of ``(first_row, band)``, bands ``(b, W)`` top to bottom, each the sum of
+            the levels' rows (iterate once).
+    """
+
+    levels: tuple[Simulated, ...]
+    rows: Iterator[tuple[int, Float[Array, "b W"]]]
+
+
+def synthesize_bands(
+    key: jax.Array,
+    levels: WrinkleParams | Sequence[WrinkleParams],
+    shape: tuple[int, int],
+    *,
+    band: int | None = None,
+    initial: Pores | None = None,
+    radius_map: ArrayLike | None = None,
+    periodic: bool = True,
+    n_steps: int = 50,
+    n_samples: int | None = None,
+) -> Bands:
+    """:func:`synthesize` for maps larger than memory: the levels are simulated at once, then
+    drawn in horizontal bands (:func:`draw_bands`), so a 16384² map never exists whole; write the
+    bands as they come (:func:`jface.io.exr_rows`). The bands joined equal
+    :func:`synthesize`'s displacement for the same arguments.
+
+    Args:
+        band: rows per band (default: about 32 MiB of float32 per band).
+        key, levels, shape, initial, radius_map, periodic, n_steps, n_samples: as
+            :func:`synthesize`.
+
+    Returns:
+        :class:`Bands`.
+    """
+    key, levels = _check_levels(key, levels, initial)
+    sims = _simulate_levels(key, levels, initial, radius_map, periodic, n_steps, n_samples)
+    # every level uses the same default tile (it depends on shape and periodicity only), so the
+    # levels' bands cover the same rows
+    band = default_band(shape) if band is None else _checks.integer(band, "band", low=1)
+    streams = [
+        draw_bands(k, sim.graph, sim.weights, p, shape, band=band, bulge=bulge)
+        for p, (sim, k, bulge) in zip(levels, sims, strict=True)
+    ]
+    return Bands(tuple(sim for sim, _, _ in sims), _sum_bands(streams))
+
+
+def _sum_bands(streams):
+    for parts in zip(*streams, strict=True):
+        yield parts[0][0], sum((rows for _, rows in parts), start=jnp.float32(0))
