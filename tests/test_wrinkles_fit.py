@@ -19,34 +19,30 @@ TRUE = (
     WrinkleParams(d=0.045, theta=1.0, s=0.2, deposit=0.6, wrinkle_width=0.3),
     WrinkleParams(d=0.0225, theta=1.0, s=0.2, deposit=0.6, snoise=0.001),
 )
-SMALL = {"d_range": D_RANGE, "n_agents": 8, "n_epochs": 6, "n_steps": 10}
+SMALL = {"d_range": D_RANGE, "n_agents": 8, "n_epochs": 6, "n_steps": 10, "d_levels": 4}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def float32_only():
-    """The drawing adds integer tile indices to float32 offsets, which the suite's strict
-    promotion rejects, so this module runs in JAX's default mode (32-bit, standard promotion)."""
-    with jax.enable_x64(False), jax.numpy_dtype_promotion("standard"):
-        yield
+def synthesize(key, levels, layout):
+    sims, levels = _simulate(key, levels, layout)
+    return _draw(key, sims, levels, layout)
 
 
 @pytest.fixture(scope="module")
-def target(float32_only):
-    """A 64² map drawn with TRUE from another seed than the fit's."""
-    layout = _layout(jax.random.key(0), (64, 64), D_RANGE, SMALL["n_steps"])
-    key = jax.random.key(123)
-    return np.asarray(_draw(key, _simulate(key, TRUE, layout), TRUE, (64, 64)))
+def target():
+    """A 64² map drawn with TRUE from other pores and another simulation key than the fit's."""
+    layout = _layout(jax.random.key(7), (64, 64), D_RANGE, SMALL["n_steps"], SMALL["d_levels"])
+    return np.asarray(synthesize(jax.random.key(123), TRUE, layout))
 
 
 @pytest.fixture(scope="module")
-def fit(target, float32_only):
+def fit(target):
     return fit_wrinkles(
         jax.random.key(0), target, names=NAMES, base=TRUE, n_trials=1, refine_steps=4, **SMALL
     )
 
 
 def test_recovers_deposit_and_orientation(fit, target):
-    layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 10)
+    layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 10, 4)
     loss = _SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, NAMES)
     true_loss = float(loss(jnp.array([0.6, 1.0, 0.3], jnp.float32)))
     assert float(fit.swarm_loss) <= 1.1 * true_loss
