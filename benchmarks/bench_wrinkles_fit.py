@@ -75,6 +75,7 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=3)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--d-levels", type=int, default=D_LEVELS)
+    parser.add_argument("--refine-steps", type=int, default=30)
     parser.add_argument("--stage-agents", type=int, default=8, help="agents of the stage split")
     args = parser.parse_args()
     shape = (args.size, args.size)
@@ -98,6 +99,7 @@ def main() -> None:
     fit = fit_wrinkles(
         jax.random.key(0), target, n_agents=args.agents, n_epochs=args.epochs,
         n_trials=args.trials, n_steps=args.steps, d_levels=args.d_levels,
+        refine_steps=args.refine_steps,
     )  # fmt: skip
     jax.block_until_ready(fit.loss)
     elapsed = time.perf_counter() - start
