@@ -6,6 +6,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from jface.wrinkles import build_graph, graph_spec, make_pores, sample_pores
+from jface.wrinkles._graph import covering_spec, stack_graphs
 
 
 @pytest.fixture(scope="module", params=[False, True], ids=["open", "periodic"])
@@ -103,3 +104,37 @@ def test_tiny_graph_and_bad_input(unchecked):
         build_graph(np.zeros((3, 2)))
     with pytest.raises(ValueError, match="k must be"):
         graph_spec(pores, k=0)
+
+
+def test_covering_spec_and_stack_graphs_keep_every_graph():
+    # one measured spec serves pore sets between the densest and the sparsest; stacking trims
+    # the slots to the data without changing any graph
+    key = jax.random.key(5)
+    sets = [sample_pores(key, d, periodic=True, capacity=1300, radius_range=(0.03, 0.05))
+            for d in (0.03, 0.04, 0.05)]  # fmt: skip
+    spec = covering_spec([sets[0], sets[2]], (0.03, 0.05))
+    bound = graph_spec(sets[0], radius_range=(0.03, 0.05))
+    assert (
+        spec.edge_cell_capacity / spec.edge_grid**2 < bound.edge_cell_capacity / bound.edge_grid**2
+    )
+    graphs = [build_graph(p, spec) for p in sets]
+    stacked = stack_graphs(graphs)
+    for i, p in enumerate(sets):
+        auto = build_graph(p)
+        n, e = int(auto.node_count), int(auto.edge_count)
+        np.testing.assert_array_equal(stacked.edge_nodes[i, :e], auto.edge_nodes[:e])
+        np.testing.assert_array_equal(stacked.edge_count[i], e)
+        pairs = {tuple(sorted(c)) for c in np.argwhere(np.asarray(auto.crossing_mask[:e]))}
+        got = {tuple(sorted(c)) for c in np.argwhere(np.asarray(stacked.crossing_mask[i, :e]))}
+        assert len(got) == len(pairs)
+        np.testing.assert_array_equal(
+            np.sort(np.where(auto.crossing_mask[:e], auto.crossings[:e], -1), -1)[:, -1],
+            np.sort(np.where(stacked.crossing_mask[i, :e], stacked.crossings[i, :e], -1), -1)[
+                :, -1
+            ],
+        )
+        np.testing.assert_array_equal(
+            np.sum(stacked.half_mask[i, :n], -1), np.sum(auto.half_mask[:n], -1)
+        )
+    assert stacked.half_mask.shape[-1] == max(int(g.degree.max()) for g in graphs)
+    assert stacked.positions.shape[1] == max(int(p.count) for p in sets) < 1300

@@ -121,6 +121,30 @@ def test_vmap_over_parameter_sets_equals_loop(graph):
         )
 
 
+def test_scoring_every_pore_equals_scoring_the_samples(graph):
+    # the simulation scores every pore once per step when there are fewer pores than samples
+    from jface.wrinkles import half_edge_scores
+    from jface.wrinkles._simulation import _scores, _static_terms
+
+    params = WrinkleParams(theta=0.4, s=0.2, dist=1.5, cont=0.006, sim=0.5, cross=0.7)
+    w = jnp.where(
+        graph.edge_mask,
+        jax.random.uniform(jax.random.key(3), graph.edge_mask.shape, jnp.float32),
+        0.0,
+    )
+    nodes = jax.random.randint(jax.random.key(4), (500,), 0, int(graph.node_count))
+    every = jnp.arange(graph.half_mask.shape[0])
+    terms = _static_terms(graph, params, every)
+    all_scores = _scores(graph, params, terms, w, every, None, per_edge=True)
+    expected = half_edge_scores(graph, params, w, nodes)
+    assert float(jnp.max(expected)) > 0
+    np.testing.assert_allclose(all_scores[nodes], expected, rtol=1e-5, atol=1e-7)
+    # and a run where N exceeds the pore count takes that path and stays a valid simulation
+    n = int(graph.node_count) + 100
+    w = simulate(jax.random.key(1), graph, params, n_steps=10, n_samples=n)
+    assert float(w.min()) >= 0 and float(w.max()) <= 1 and float(w.max()) > 0
+
+
 def test_deposits_on_one_edge_compound_exactly():
     pores = make_pores(np.array([[0.3, 0.5], [0.6, 0.5]], np.float32), radius=0.2)
     graph = build_graph(pores, k=1)

@@ -32,6 +32,10 @@ def register(subparsers) -> None:
     parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
     parser.add_argument("--refine-steps", type=int, default=30, help="BFGS steps (0: none)")
     parser.add_argument(
+        "--d-levels", type=int, default=32,
+        help="α_d values whose pores and graphs are precomputed (default: 32)",
+    )  # fmt: skip
+    parser.add_argument(
         "--d-range", type=float, nargs=2, default=(0.02, 0.05), metavar=("LOW", "HIGH"),
         help="search range of the pore distance α_d (default: 0.02 0.05)",
     )  # fmt: skip
@@ -42,9 +46,11 @@ def _fit(args: argparse.Namespace) -> None:
     out = Path(args.out)
     if out.suffix != ".json":
         raise ValueError(f"--out must name a .json file, got {out}")
-    for name in ("agents", "epochs", "trials", "steps"):
+    for name in ("agents", "epochs", "trials", "steps", "d_levels"):
         if getattr(args, name) < 1:
-            raise ValueError(f"--{name} must be at least 1, got {getattr(args, name)}")
+            raise ValueError(
+                f"--{name.replace('_', '-')} must be at least 1, got {getattr(args, name)}"
+            )
     patch = read_map(args.patch, args.channel)
     total = args.trials * args.epochs
     with tqdm(total=total, desc="particle swarm", unit="epoch") as bar:
@@ -63,12 +69,13 @@ def _fit(args: argparse.Namespace) -> None:
             n_trials=args.trials,
             n_steps=args.steps,
             refine_steps=args.refine_steps,
+            d_levels=max(2, args.d_levels),
             progress=progress,
         )
     meta = provenance(
         seed=args.seed, patch=str(args.patch), agents=args.agents, epochs=args.epochs,
         trials=args.trials, steps=args.steps, refine_steps=args.refine_steps,
-        d_range=list(args.d_range),
+        d_range=list(args.d_range), d_levels=args.d_levels,
     )  # fmt: skip
     document = json.loads(params_to_json(list(fit.levels)))
     document |= {

@@ -4,9 +4,12 @@ Two levels; α_d of level 1 is free and level 2 uses half of it; per level the p
 parameters (α_θ cyclic) and one additive Perlin noise level (α_fnoise, α_snoise, drawn with level
 1). A particle swarm (:func:`jface.optim.pso`, lbest, Random+Absorb) minimises the VGG-free texture
 loss (:func:`jface.optim.texture_distance`) between the synthesised map and the patch. Agents whose
-α_d differ run in one ``vmap``: pores and graphs have the static capacities of the densest α_d in
-the search range. Each trial evaluates every agent with the same simulation key (common random
-numbers), so the loss is a deterministic function of the parameters.
+α_d differ run in one ``vmap``. Pores and graph depend on α_d alone (one fixed pore key, common
+random numbers), so they are built once per fit on a grid of ``d_levels`` values of α_d, trimmed
+to the slots the data use, and each agent simulates on the nearest (α_d is effectively quantised
+to that grid; the reported α_d is the grid value). Each trial evaluates every agent with the same
+simulation key, so the loss is a deterministic function of the parameters. The map is drawn at
+the patch size rounded up to whole 32-pixel tiles (a periodic map needs whole tiles) and cropped.
 
 Beyond the paper, the continuous drawing parameters of the best agent are then refined by
 gradient (optimistix BFGS) through the differentiable drawing with the simulation result held
@@ -15,7 +18,6 @@ fixed.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -27,13 +29,13 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from jface import _checks
-from jface.optim import PSOResult, pso, texture_distance, texture_stats
+from jface.optim import PSOResult, TextureStats, pso, texture_distance, texture_stats
 from jface.optim._texture import _stats
-from jface.wrinkles._drawing import bin_primitives, draw, primitives
-from jface.wrinkles._graph import build_graph, graph_spec
+from jface.wrinkles._drawing import bin_primitives, draw, needed_span, primitives
+from jface.wrinkles._graph import PoreGraph, build_graph, covering_spec, stack_graphs
 from jface.wrinkles._params import PARAMETER_RANGES, WrinkleParams
 from jface.wrinkles._sampling import sample_pores
-from jface.wrinkles._simulation import simulate
+from jface.wrinkles._simulation import N_SAMPLES, simulate
 
 #: Per-level parameters the paper fits (§4.2.2), besides α_d and one noise level.
 LEVEL_NAMES = (
@@ -46,6 +48,8 @@ PAPER_NAMES = ("d", *(f"{lv}.{n}" for lv in (1, 2) for n in LEVEL_NAMES), "fnois
 DRAWING_NAMES = ("wrinkle_width", "pore_width", "blend", "skew", "cushion", "sperturb")
 #: Default α_d search range: Table 1 allows [0.001, 0.05]; a patch holds a few hundred pores.
 D_RANGE = (0.02, 0.05)
+#: Default number of α_d values whose pores and graphs are precomputed (steps of 2–5 % of α_d).
+D_LEVELS = 32
 
 
 class WrinkleFit(eqx.Module):
@@ -71,75 +75,131 @@ class WrinkleFit(eqx.Module):
 
 
 class _Layout(eqx.Module):
-    """Static sizes that let agents with different α_d share one compiled pipeline."""
+    """Precomputed pores and graphs of the α_d grid, and the static sizes that let agents with
+    different α_d share one compiled pipeline.
 
+    With common random numbers the pores and the graph are a function of α_d alone, so they are
+    built once per fit for ``d_levels`` values of α_d spanning ``d_range``, each level sized to
+    the data (:func:`stack_graphs`); an agent simulates on the graphs of the nearest value.
+    """
+
+    d_values: Float[Array, " K"]
+    graphs: tuple[PoreGraph, PoreGraph]
+    size: tuple[int, int] = eqx.field(static=True)
     shape: tuple[int, int] = eqx.field(static=True)
-    ranges: tuple[tuple[float, float], tuple[float, float]] = eqx.field(static=True)
-    capacities: tuple[int, int] = eqx.field(static=True)
-    specs: tuple[Any, Any] = eqx.field(static=True)
+    n_samples: tuple[int, int] = eqx.field(static=True)
     n_steps: int = eqx.field(static=True)
+    span: tuple[int, int] = eqx.field(static=True)
+    passes: tuple[int, int] = eqx.field(static=True)
+
+    def select(self, d) -> tuple[Array, tuple[PoreGraph, PoreGraph]]:
+        """The grid value nearest to α_d and its two graphs."""
+        lo, hi = self.d_values[0], self.d_values[-1]
+        k = self.d_values.shape[0]
+        i = jnp.clip(jnp.round((d - lo) / (hi - lo) * (k - 1)), 0, k - 1).astype(jnp.int32)
+        return self.d_values[i], jax.tree.map(lambda a: a[i], self.graphs)
 
 
-def _layout(key, shape, d_range, n_steps) -> _Layout:
+# screen tile (pixels) and primitives per pass of the swarm's draws: 8-pixel tiles draw a 256²
+# two-level map 2-4x faster than 32-pixel ones (fewer primitives tested per pixel)
+_TILE, _CAPACITY = 8, 16
+#: drawing fields at their widest for sizing the draws (agents beyond get a NaN loss)
+_WIDE = {"wrinkle_width": 0.6, "pore_width": 0.3, "blend": 0.5, "skew": 0.5, "sperturb": 1.0}
+
+
+def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
+    shape = tuple(-(-n // _TILE) * _TILE for n in size)
     lo, hi = d_range
     ranges = ((lo, hi), (lo / 2, hi / 2))
-    dense1 = sample_pores(key, lo, periodic=True, radius_range=ranges[0])
-    dense2 = sample_pores(key, lo / 2, initial=dense1, periodic=True, radius_range=ranges[1])
-    specs = tuple(
-        graph_spec(p, radius_range=r, max_degree=16, max_crossings=16)
-        for p, r in zip((dense1, dense2), ranges, strict=True)
+    k1, k2 = jax.random.split(key)
+
+    def pores(d, caps=(None, None)):
+        p1 = sample_pores(k1, d, capacity=caps[0], radius_range=ranges[0], periodic=True)
+        p2 = sample_pores(
+            k2, d / 2, capacity=caps[1], initial=p1, radius_range=ranges[1], periodic=True
+        )
+        return p1, p2
+
+    dense = pores(lo)
+    caps = (dense[0].capacity, dense[1].capacity)
+    sparse = pores(hi, caps)
+    specs = tuple(covering_spec((dense[i], sparse[i]), ranges[i]) for i in range(2))
+    d_values = np.linspace(lo, hi, d_levels, dtype=np.float32)
+    built = [
+        tuple(build_graph(p, spec) for p, spec in zip(pores(d, caps), specs, strict=True))
+        for d in d_values
+    ]
+    graphs = tuple(stack_graphs([g[level] for g in built]) for level in range(2))
+    # the simulation's N: its default for the densest graph of the range (the fit's objective
+    # does not depend on how tightly the graphs are stored)
+    n_samples = tuple(min(N_SAMPLES, specs[level].k * caps[level]) for level in range(2))
+    span, passes = _draw_sizes(k1, d_values, graphs, shape, n_samples, n_steps)
+    return _Layout(
+        jnp.asarray(d_values), graphs, tuple(size), shape, n_samples, n_steps, span, passes
     )
-    # 10 % headroom: another key may pack a few more pores than the reference draw
-    caps = (math.ceil(1.1 * dense1.capacity), math.ceil(1.1 * dense2.capacity))
-    return _Layout(tuple(shape), ranges, caps, specs, n_steps)
+
+
+def _draw_sizes(key, d_values, graphs, shape, n_samples, n_steps):
+    """Tile span and passes per level that draw the densest and the sparsest α_d of the grid with
+    the simulation's default weights and the drawing fields at ``_WIDE``, with headroom."""
+    spans, passes = [], []
+    for level, bulge in enumerate((True, False)):
+        span, count = 1, 1
+        for i in (0, len(d_values) - 1):
+            g = jax.tree.map(lambda a, i=i: a[i], graphs[level])
+            params = WrinkleParams(d=float(d_values[i]) / (1 + level), **_WIDE)
+            w = simulate(key, g, params, n_steps=n_steps, n_samples=n_samples[level])
+            prims = primitives(key, g, w, params)
+            need = needed_span(prims, shape, tile=_TILE, bulge=bulge, periodic=True)
+            bins = bin_primitives(prims, shape, tile=_TILE, span=need, bulge=bulge, periodic=True)
+            span, count = max(span, need), max(count, int(jnp.max(bins.count)))
+        spans.append(span + 2)
+        passes.append(-(-2 * count // _CAPACITY))
+    return tuple(spans), tuple(passes)
 
 
 def _simulate(key, levels: tuple[WrinkleParams, WrinkleParams], layout: _Layout):
-    """Pores, graphs and trail weights of both levels (level 2 starts from level 1's pores)."""
-    k = jax.random.split(key, 4)
-    p1, p2 = levels
-    pores1 = sample_pores(
-        k[0], p1.d, capacity=layout.capacities[0], radius_range=layout.ranges[0], periodic=True
+    """Graphs and trail weights of both levels (α_d snapped to the layout's grid)."""
+    k = jax.random.split(key, 2)
+    d, graphs = layout.select(levels[0].d)
+    levels = (_with(levels[0], {"d": d}), _with(levels[1], {"d": d / 2}))
+    sims = tuple(
+        (g, simulate(kk, g, p, n_steps=layout.n_steps, n_samples=n))
+        for kk, g, p, n in zip(k, graphs, levels, layout.n_samples, strict=True)
     )
-    pores2 = sample_pores(
-        k[1], p2.d, capacity=layout.capacities[1], initial=pores1,
-        radius_range=layout.ranges[1], periodic=True,
-    )  # fmt: skip
-    g1, g2 = build_graph(pores1, layout.specs[0]), build_graph(pores2, layout.specs[1])
-    return (
-        (g1, simulate(k[2], g1, p1, n_steps=layout.n_steps)),
-        (g2, simulate(k[3], g2, p2, n_steps=layout.n_steps)),
-    )
+    return sims, levels
 
 
-_SPAN = 4  # tiles per axis a primitive may touch in the swarm's draws (static)
-
-
-def _draw(key, sims, levels, shape) -> Float[Array, "H W"]:
+def _draw(key, sims, levels, layout: _Layout) -> Float[Array, "H W"]:
     """Both levels drawn and summed (the finest with the no-bulge profile, as in the paper)."""
-    return _draw_checked(key, sims, levels, shape)[0]
+    return _draw_checked(key, sims, levels, layout)[0]
 
 
-def _draw_checked(key, sims, levels, shape) -> tuple[Float[Array, "H W"], Array]:
-    """Like :func:`_draw`, plus whether some primitive was too large to draw.
+def _draw_checked(key, sims, levels, layout: _Layout) -> tuple[Float[Array, "H W"], Array]:
+    """Like :func:`_draw`, plus whether some level was too large for the static draw sizes.
 
     Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into one huge pore) can make a
-    primitive exceed the drawing's static tile span, which would abort the whole swarm. Such a
-    level is drawn without wrinkles (a safe stand-in) and flagged, so its loss becomes NaN, which
-    the swarm contains and counts.
+    primitive exceed the tile span or a tile hold more primitives than the passes take, which
+    would abort the whole swarm. Such a level is drawn without wrinkles (a safe stand-in) and
+    flagged, so its loss becomes NaN, which the swarm contains and counts.
     """
     k1, k2 = jax.random.split(jax.random.fold_in(key, 7))
-    out, bad = jnp.zeros(shape, jnp.float32), jnp.zeros((), bool)
-    for k, (graph, w), params, bulge in zip((k1, k2), sims, levels, (True, False), strict=True):
+    out, bad = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool)
+    for i, (k, (graph, w), params) in enumerate(zip((k1, k2), sims, levels, strict=True)):
+        bulge, span, passes = i == 0, layout.span[i], layout.passes[i]
         prims = primitives(jax.random.split(k)[0], graph, w, params)
-        overflow = bin_primitives(
-            prims, shape, tile=32, span=_SPAN, bulge=bulge, periodic=graph.periodic
-        ).overflow
-        safe = _with(params, {"pore_width": jnp.where(overflow, 0.01, params.pore_width)})
-        w = jnp.where(overflow, 0.0, w)
-        out = out + draw(k, graph, w, safe, shape, tile=32, span=_SPAN, bulge=bulge)
-        bad = bad | overflow
-    return out, bad
+        bins = bin_primitives(
+            prims, layout.shape, tile=_TILE, span=span, bulge=bulge, periodic=True
+        )
+        over = bins.overflow | (jnp.max(bins.count) > passes * _CAPACITY)
+        safe = _with(params, {"pore_width": jnp.where(over, 0.01, params.pore_width)})
+        w = jnp.where(over, 0.0, w)
+        out = out + draw(
+            k, graph, w, safe, layout.shape, tile=_TILE, span=span, passes=passes,
+            capacity=_CAPACITY, bulge=bulge,
+        )  # fmt: skip
+        bad = bad | over
+    return out[: layout.size[0], : layout.size[1]], bad
 
 
 def _levels_from(x: Array, names: Sequence[str], base: tuple[WrinkleParams, WrinkleParams]):
@@ -176,11 +236,13 @@ class _SwarmLoss(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
 
     def __call__(self, x):
-        levels = _levels_from(x, self.names, self.base)
-        sims = _simulate(self.key, levels, self.layout)
-        image, bad = _draw_checked(self.key, sims, levels, self.layout.shape)
-        loss = texture_distance(_stats(image, 4, 4, "reflect"), self.target)
-        return jnp.where(bad, jnp.nan, loss)
+        sims, levels = _simulate(self.key, _levels_from(x, self.names, self.base), self.layout)
+        image, bad = _draw_checked(self.key, sims, levels, self.layout)
+        return jnp.where(bad, jnp.nan, _loss(image, self.target))
+
+
+def _loss(image, target: TextureStats) -> Float[Array, ""]:
+    return texture_distance(_stats(image, 4, 4, "reflect"), target)
 
 
 def _bounds(names, d_range, overrides) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -209,6 +271,7 @@ def fit_wrinkles(
     n_trials: int = 3,
     n_steps: int = 50,
     refine_steps: int = 30,
+    d_levels: int = D_LEVELS,
     progress=None,
 ) -> WrinkleFit:
     """Fit two-level wrinkle parameters to a displacement patch (§4.2 of Weiss et al. 2023).
@@ -228,6 +291,8 @@ def fit_wrinkles(
         n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
         n_steps: simulation steps per level (paper: 50).
         refine_steps: BFGS steps on the drawing parameters afterwards (0: none).
+        d_levels: α_d values (evenly spaced over ``d_range``) whose pores and graphs are built
+            once; an agent simulates with the nearest, and that value is what the result reports.
         progress: passed to :func:`jface.optim.pso`.
 
     Returns:
@@ -266,8 +331,10 @@ def fit_wrinkles(
         raise ValueError(f"base α_d {float(base[0].d)} lies outside d_range {d_range}")
     low, high, cyclic = _bounds(names, d_range, bounds)
 
+    n_steps = _checks.integer(n_steps, "n_steps", low=1)
+    d_levels = _checks.integer(d_levels, "d_levels", low=2)
     k_layout, k_sim, k_swarm = jax.random.split(key, 3)
-    layout = _layout(k_layout, target.shape, d_range, _checks.integer(n_steps, "n_steps", low=1))
+    layout = _layout(k_layout, target.shape, d_range, n_steps, d_levels)
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
     # one swarm per trial, each with its own simulation key; all share one compile
@@ -321,7 +388,7 @@ def _merge(trials: list[PSOResult], best: int) -> PSOResult:
 
 def _refine(sim_key, levels, layout, target_stats, names, steps):
     """BFGS on the fitted drawing fields with the simulation result held fixed."""
-    sims = _simulate(sim_key, levels, layout)
+    sims, levels = _simulate(sim_key, levels, layout)
     fields = [
         (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
     ]
@@ -333,42 +400,24 @@ def _refine(sim_key, levels, layout, target_stats, names, steps):
             changes[lv][f] = lo + (hi - lo) * jax.nn.sigmoid(z[i])
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
 
-    def forward(z):
-        image, bad = _draw_checked(sim_key, sims, unpack(z), layout.shape)
-        loss = texture_distance(_stats(image, 4, 4, "reflect"), target_stats)
-        return jnp.where(bad, jnp.inf, loss)  # the line search backs off from undrawable steps
-
-    # the drawing's multi-pass while_loop is forward- but not reverse-differentiable, so the
-    # gradient (a dozen parameters at most) comes from forward mode
-    @jax.custom_vjp
-    def loss_of(z):
-        return forward(z)
-
-    def loss_fwd(z):
-        return forward(z), jax.jacfwd(forward)(z)
-
-    def loss_bwd(grad, cotangent):
-        return (cotangent * grad,)
-
-    loss_of.defvjp(loss_fwd, loss_bwd)
-
     def loss(z, _):
-        return loss_of(z)
+        image, bad = _draw_checked(sim_key, sims, unpack(z), layout)
+        return jnp.where(bad, jnp.inf, _loss(image, target_stats))  # the line search backs off
 
     def logit(lv, f):
         lo, hi = PARAMETER_RANGES[f]
         u = jnp.clip((getattr(levels[lv], f) - lo) / (hi - lo), 1e-3, 1 - 1e-3)
         return jnp.log(u) - jnp.log1p(-u)
 
+    image = _draw(sim_key, sims, levels, layout)
+    start = _loss(image, target_stats)
     if not fields or steps == 0:
-        image = _draw(sim_key, sims, levels, layout.shape)
-        return levels, texture_distance(_stats(image, 4, 4, "reflect"), target_stats), image
+        return levels, start, image
     z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
-    start = loss(z0, None)
     solver = optx.BFGS(rtol=1e-4, atol=1e-6)
     sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
     refined = loss(sol.value, None)
-    if bool(refined < start):  # keep the swarm's answer if the refinement did not help
-        z0, start = sol.value, refined
-    best = unpack(z0)
-    return best, start, _draw(sim_key, sims, best, layout.shape)
+    if not bool(refined < start):  # keep the swarm's answer if the refinement did not help
+        return levels, start, image
+    best = unpack(sol.value)
+    return best, refined, _draw(sim_key, sims, best, layout)

@@ -485,3 +485,88 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
         periodic=pores.periodic,
         **topo,
     )
+
+
+def covering_spec(
+    pores: list[Pores] | tuple[Pores, ...],
+    radius_range: tuple[float, float],
+    *,
+    k: int = 6,
+    headroom: float = 1.5,
+) -> GraphSpec:
+    """One :class:`GraphSpec` for graphs of pores whose radii span ``radius_range``, measured on
+    concrete examples (e.g. the densest and the sparsest pore sets of a parameter range).
+
+    :func:`graph_spec` sizes the crossing search from the kNN reach, a bound several times the
+    longest edge; here the longest edge, the edge-midpoint cell occupancy and the degree are
+    measured on ``pores`` (with ``headroom``), so the crossing search reads far fewer candidates.
+    ``max_crossings`` keeps its default bound. A graph that exceeds the spec raises, as always.
+    """
+    base = graph_spec(pores[0], k=k, radius_range=radius_range)
+    longest, degree, mids = 0.0, 1, []
+    for p in pores:
+        topo, _ = _topology(
+            p.positions, p.mask, p.count, k=base.k, deg=base.max_degree, grid=base.knn_grid,
+            cell_cap=base.knn_cell_capacity, reach=base.knn_reach, periodic=p.periodic,
+        )  # fmt: skip
+        valid = np.asarray(topo["edge_mask"])
+        longest = max(longest, float(jnp.max(topo["edge_length"])))
+        degree = max(degree, int(jnp.max(jnp.sum(topo["half_mask"], -1))))
+        mid = np.asarray(p.positions)[np.asarray(topo["edge_nodes"][:, 0])]
+        mid = mid + 0.5 * np.asarray(topo["edge_delta"])
+        mids.append(np.mod(mid, 1.0)[valid] if p.periodic else mid[valid])
+    edge_grid = max(5 if pores[0].periodic else 1, math.floor(2.0 / (headroom * longest)))
+    occupancy = 1
+    for mid in mids:
+        cells = np.clip(np.floor(mid * edge_grid).astype(np.int64), 0, edge_grid - 1)
+        occupancy = max(occupancy, int(np.bincount(cells[:, 1] * edge_grid + cells[:, 0]).max()))
+    return base._replace(
+        max_degree=min(base.max_degree, degree + 4),
+        edge_grid=edge_grid,
+        edge_cell_capacity=math.ceil(headroom * occupancy) + 4,
+    )
+
+
+def stack_graphs(graphs: list[PoreGraph] | tuple[PoreGraph, ...]) -> PoreGraph:
+    """Concrete graphs of equal capacities stacked into a batch (leading axis), every slot axis
+    (nodes, edges, half-edges per node, crossings per edge) trimmed to what some graph uses.
+
+    This sizes a batch of precomputed graphs (e.g. one per α_d of a parameter fit) to the data
+    rather than to the bounds, which is what a vmapped simulation and drawing pay for.
+
+    Raises:
+        TypeError/ValueError: not a non-empty list of single :class:`PoreGraph` of equal shapes.
+    """
+    if not graphs or not all(isinstance(g, PoreGraph) for g in graphs):
+        raise TypeError("stack_graphs needs a non-empty list of PoreGraph")
+    shapes = {tuple(x.shape for x in jax.tree.leaves(g)) for g in graphs}
+    if len(shapes) != 1 or graphs[0].positions.ndim != 2:
+        raise ValueError("stack_graphs needs single graphs of identical shapes (one GraphSpec)")
+    n = max(int(g.node_count) for g in graphs)
+    e = max(int(g.edge_count) for g in graphs)
+    d = max(int(jnp.max(g.degree)) for g in graphs)
+    c = max(int(jnp.max(jnp.sum(g.crossing_mask, -1))) for g in graphs)
+
+    def trim(g: PoreGraph) -> PoreGraph:
+        order = jnp.argsort(~g.half_mask, axis=-1, stable=True)[:n, :d]  # valid half-edges first
+        half = {
+            name: jnp.take_along_axis(getattr(g, name)[:n], order, axis=-1)
+            for name in ("half_target", "half_edge", "half_angle", "half_length", "half_mask")
+        }
+        return PoreGraph(
+            positions=g.positions[:n],
+            node_mask=g.node_mask[:n],
+            node_count=g.node_count,
+            edge_nodes=g.edge_nodes[:e],
+            edge_delta=g.edge_delta[:e],
+            edge_length=g.edge_length[:e],
+            edge_angle=g.edge_angle[:e],
+            edge_mask=g.edge_mask[:e],
+            edge_count=g.edge_count,
+            crossings=g.crossings[:e, : max(c, 1)],
+            crossing_mask=g.crossing_mask[:e, : max(c, 1)],
+            periodic=g.periodic,
+            **half,
+        )
+
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *[trim(g) for g in graphs])

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -93,6 +94,25 @@ def half_edge_scores(
     """Unnormalised probabilities of Eq. 3 for the half-edges of ``nodes`` (N,) given edge
     ``weights`` (E,); zero on empty slots. ``kernel``: optionally :func:`continuation_kernel` of
     all pores, reshaped to ``(n, D·D)``."""
+    terms = _static_terms(graph, params, nodes)
+    if kernel is not None:  # rows of a per-pore table (n, D·D): 2-D gathers are much faster on CPU
+        kernel = kernel[nodes].reshape(*terms.mask.shape, terms.mask.shape[-1])
+    return _scores(graph, params, terms, weights, nodes, kernel)
+
+
+class _Terms(NamedTuple):
+    """The weight-independent parts of Eq. 3 for a set of pores (fixed over a simulation)."""
+
+    mask: Array  # (N, D) valid half-edges
+    edge: Array  # (N, D) edge index of each half-edge
+    cont: Array  # (N, 1) α_cont
+    sim: Array  # (N, 1) α_sim
+    cross: Array  # (N, 1) α_cross
+    pref: Array  # (N, D) d_h^(−α_dist) (1 − α_cont) p_pref (Eq. 3, 5)
+    dist: Array  # (N, D) d_h^(−α_dist)
+
+
+def _static_terms(graph: PoreGraph, params: WrinkleParams, nodes) -> _Terms:
     pos = graph.positions[nodes]
     per = graph.periodic
 
@@ -100,22 +120,40 @@ def half_edge_scores(
         return at(v, pos, periodic=per)[:, None]
 
     theta, s, sigma = node(params.theta), node(params.s), node(params.sigma)
-    dist, cont, sim = node(params.dist), node(params.cont), node(params.sim)
-    cross = node(params.cross)
-    he = graph.half_edge[nodes]
+    dist, cont = node(params.dist), node(params.cont)
     hm = graph.half_mask[nodes]
-    th = graph.half_angle[nodes]
     hl = graph.half_length[nodes]
+    # Eq. 5: orientation sampler
+    p_pref = orientation_density(graph.half_angle[nodes], theta, s, sigma)
+    ref = jnp.min(jnp.where(hm, hl, jnp.inf), axis=-1, keepdims=True)
+    ratio = jnp.where(hm, hl / jnp.where(jnp.isfinite(ref), ref, 1.0), 1.0)
+    dist_factor = jnp.exp(-dist * jnp.log(jnp.maximum(ratio, 1e-12)))
+    return _Terms(
+        mask=hm,
+        edge=graph.half_edge[nodes],
+        cont=cont,
+        sim=node(params.sim),
+        cross=node(params.cross),
+        pref=dist_factor * (1.0 - cont) * p_pref,
+        dist=dist_factor,
+    )
+
+
+def _scores(graph: PoreGraph, params, terms: _Terms, weights, nodes, kernel, per_edge=False):
+    """Eq. 3 from the fixed terms and the current weights. ``kernel``: ``(N, D, D)`` rows of Eq.
+    4's kernel (None: computed here); ``per_edge``: sum the crossing weights once per edge rather
+    than per half-edge (cheaper when every pore is scored)."""
+    hm, he = terms.mask, terms.edge
     w = jnp.where(hm, weights[he], 0.0)
 
     def continuation():  # Eq. 4: reward the opposite direction, penalise similar directions
-        if kernel is None:
-            kern = continuation_kernel(graph, params, nodes)
-        else:  # rows of a per-pore table (n, D·D): 2-D gathers are much faster on CPU
-            kern = kernel[nodes].reshape(*hm.shape, hm.shape[-1])
+        kern = continuation_kernel(graph, params, nodes) if kernel is None else kernel
         return jnp.einsum("nhk,nk->nh", kern, w)
 
     def crossing():  # Eq. 6: summed weight of the crossing edges
+        if per_edge:
+            cw = jnp.where(graph.crossing_mask, weights[graph.crossings], 0.0)
+            return jnp.sum(cw, axis=-1)[he]
         flat = he.reshape(-1)  # 2-D row gathers are much faster than 3-D ones on CPU
         cw = jnp.where(graph.crossing_mask[flat], weights[graph.crossings[flat]], 0.0)
         return jnp.sum(cw, axis=-1).reshape(he.shape)
@@ -124,15 +162,10 @@ def half_edge_scores(
         return jnp.zeros(hm.shape, w.dtype)
 
     # the terms cost most; skip them when their parameters are zero everywhere
-    p_cont = jax.lax.cond(jnp.any(cont != 0) | jnp.any(sim != 0), continuation, zeros)
-    p_cross = jax.lax.cond(jnp.any(cross != 0), crossing, zeros)
-    # Eq. 5: orientation sampler
-    p_pref = orientation_density(th, theta, s, sigma)
+    p_cont = jax.lax.cond(jnp.any(terms.cont != 0) | jnp.any(terms.sim != 0), continuation, zeros)
+    p_cross = jax.lax.cond(jnp.any(terms.cross != 0), crossing, zeros)
     # Eq. 3
-    ref = jnp.min(jnp.where(hm, hl, jnp.inf), axis=-1, keepdims=True)
-    ratio = jnp.where(hm, hl / jnp.where(jnp.isfinite(ref), ref, 1.0), 1.0)
-    dist_factor = jnp.exp(-dist * jnp.log(jnp.maximum(ratio, 1e-12)))
-    score = dist_factor * (p_cont + (1.0 - cont) * p_pref - cross * p_cross)
+    score = terms.pref + terms.dist * (p_cont - terms.cross * p_cross)
     return jnp.where(hm, jnp.maximum(score, 0.0), 0.0)
 
 
@@ -223,13 +256,24 @@ def _simulate(key, graph, params, w0, *, n_steps, n_samples):
             lambda: jnp.zeros((n_nodes, d * d), jnp.float32),
         )
 
+    # Eq. 3's weight-independent terms are fixed for the run; when the pores are fewer than the
+    # samples per step, scoring every pore once per step and gathering the sampled rows is cheaper
+    # than scoring each sample (the same numbers either way)
+    score_all = n_nodes <= n_samples
+    if score_all:
+        all_nodes = jnp.arange(n_nodes, dtype=jnp.int32)
+        terms = _static_terms(graph, params, all_nodes)
+        kernel = None if table is None else table.reshape(n_nodes, d, d)
+
     def step(w, key):
         k_node, k_pick = jax.random.split(key)
         nodes = jax.random.randint(
             k_node, (n_samples,), 0, jnp.maximum(graph.node_count, 1), dtype=jnp.int32
         )
-        score = half_edge_scores(graph, params, w, nodes, table)
-        cum = jnp.cumsum(score, axis=-1)
+        if score_all:
+            cum = jnp.cumsum(_scores(graph, params, terms, w, all_nodes, kernel, True), -1)[nodes]
+        else:
+            cum = jnp.cumsum(half_edge_scores(graph, params, w, nodes, table), axis=-1)
         total = cum[:, -1]
         u = jax.random.uniform(k_pick, (n_samples,), dtype=jnp.float32) * total
         pick = jnp.minimum(jnp.sum(cum <= u[:, None], axis=-1), d - 1)
