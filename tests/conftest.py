@@ -1,5 +1,6 @@
 """Strict numerics for every test: float64 available, strict dtype promotion, seeded keys."""
 
+from importlib import resources
 from pathlib import Path
 
 import jax
@@ -11,6 +12,16 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 #: Real data that ships beside the repository (meshes, ICT-FaceKit); see its README.
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def ict_model() -> dict[str, np.ndarray]:
+    """The ICT-FaceKit face model that ships with jface (jface/data/ict_face_small.npz: the
+    face-area mesh, its 10 leading identity modes and the smile), so tests need no shared data."""
+    from jface.io import load_arrays
+
+    with resources.as_file(resources.files("jface") / "data" / "ict_face_small.npz") as path:
+        return load_arrays(path, kind="FaceMeshModel")[0]
 
 
 @pytest.fixture

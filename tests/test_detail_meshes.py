@@ -7,20 +7,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
 
 from jface import detail, mesh
 
-ICT = SHARED_DATA / "ict_facekit" / "ict_face_area.npz"
-
 
 @pytest.fixture(scope="module")
-def faces():
+def faces(ict_model):
     """Three real face shapes (ICT-FaceKit identities), remeshed alike at 64² with a
     three-level hierarchy (marker mesh, 3 offset levels, displacement image)."""
-    if not ICT.is_file():
-        pytest.skip("ICT-FaceKit data not found beside the repository")
-    data = np.load(ICT)
+    data = ict_model
     neutral, triangles = data["vertices"].astype(np.float64), data["faces"]
     deltas = data["identity_deltas"].astype(np.float64)
     rng = np.random.default_rng(0)

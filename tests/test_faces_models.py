@@ -8,7 +8,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
 from scipy.linalg import subspace_angles
 from scipy.stats import multivariate_normal
 from sklearn.decomposition import FactorAnalysis
@@ -49,16 +48,15 @@ def dense_cov(model) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def ict() -> dict[str, np.ndarray]:
+def ict(ict_model) -> dict[str, np.ndarray]:
     """Renders of 80 random ICT-FaceKit identities (leading 10 identity modes), 16×16
     (rendered at 32×32, box-filtered): frontal neutral, frontal smiling, profile (yaw 90°±5°).
     Camera noise (σ = 0.01) keeps the background from being constant."""
-    data = np.load(SHARED_DATA / "ict_facekit" / "ict_face_area.npz")
+    data = ict_model
     v = data["vertices"].astype(np.float64)
     tris = data["faces"]
     modes = data["identity_deltas"][:10].astype(np.float64).reshape(10, -1)
-    ex = data["expression_deltas"].astype(np.float64)
-    smile = ex[0] + ex[1]  # mouthSmile_L + mouthSmile_R
+    smile = data["smile_delta"].astype(np.float64)  # mouthSmile_L + mouthSmile_R
     rng = np.random.default_rng(7)
     center, extent = np.array([0.0, -1.0, 5.0]), 16.0
     out = {"neutral": [], "smile": [], "profile": []}

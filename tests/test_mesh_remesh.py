@@ -150,8 +150,8 @@ def test_casters_agree(synthetic, remeshed):
     np.testing.assert_allclose(fast.distance, exact.distance, atol=1e-4)
 
 
-def test_two_ict_identities_correspond_pixel_for_pixel():
-    data = np.load(_shared("ict_facekit", "ict_face_area.npz"))
+def test_two_ict_identities_correspond_pixel_for_pixel(ict_model):
+    data = ict_model
     neutral, faces = data["vertices"].astype(np.float64), data["faces"]
     deltas = data["identity_deltas"].astype(np.float64)
     rng = np.random.default_rng(0)
