@@ -1,9 +1,12 @@
 """``jface wrinkles simulate``: files written, loadable, consistent; errors end with status 2."""
 
+from pathlib import Path
+
 import numpy as np
 
+import jface
 from jface.cli import main
-from jface.io import load_arrays, read_image
+from jface.io import load_arrays, read_image, read_mesh
 from jface.wrinkles import WrinkleParams, save_params
 
 
@@ -53,6 +56,17 @@ def test_render_and_extract(tmp_path, capsys):
     levels = read_json(tmp_path / "e.json")["levels"]
     assert np.asarray(levels[0]["theta"]).shape == (2, 2)
     assert read_json(tmp_path / "e_pores.json")["kind"] == "Pores"
+    # on the built-in UV-mapped MediaPipe face: pores spaced by its UV stretch, mesh displaced
+    face = Path(jface.__file__).parent / "data" / "mediapipe_canonical_face.obj"
+    assert main([*args, "--out", str(tmp_path / "m.exr"), "--mesh", str(face)]) == 0
+    moved, plain = read_mesh(tmp_path / "m.obj"), read_mesh(face)
+    shift = np.linalg.norm(moved.vertices - plain.vertices, axis=1)
+    assert (
+        moved.faces.shape == plain.faces.shape
+        and 0 < np.median(shift) < 1e-2 * np.ptp(plain.vertices, axis=0).max()
+    )
+    assert main([*args, "--out", str(tmp_path / "n.exr"), "--mesh", str(face), "--periodic"]) == 2
+    assert "does not go with --mesh" in capsys.readouterr().err
     # a multi-channel EXR where one channel is expected, a bad size: one line, status 2
     write_exr(tmp_path / "rgb.exr", np.zeros((64, 64, 3), np.float32))
     capsys.readouterr()
