@@ -179,6 +179,20 @@ def test_loss_closing_over_arrays_through_partial(key):
     np.testing.assert_allclose(result.params, [0.2, -0.4], atol=1e-2)
 
 
+def test_batched_loss_equals_the_vmapped_one(key):
+    """A loss that evaluates the whole swarm itself (here one agent after the other) runs the
+    same swarm as the vmapped per-agent loss."""
+    mapped = pso(key, rastrigin, box(4, 5.12), n_agents=12, n_epochs=20)
+    batched = pso(
+        key, lambda xs: jax.lax.map(rastrigin, xs), box(4, 5.12), n_agents=12, n_epochs=20,
+        batched=True,
+    )  # fmt: skip
+    np.testing.assert_allclose(batched.history, mapped.history, rtol=1e-6)
+    np.testing.assert_allclose(batched.params, mapped.params, rtol=1e-6)
+    with pytest.raises(TypeError, match="one loss per agent"):
+        pso(key, rastrigin, box(4, 5.12), n_agents=12, batched=True)
+
+
 @pytest.mark.parametrize(
     ("kwargs", "error", "match"),
     [

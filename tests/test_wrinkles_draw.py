@@ -25,7 +25,15 @@ from jface.wrinkles import (
     shape_function,
     simulate,
 )
-from jface.wrinkles._drawing import N_VERTICES, primitives
+from jface.wrinkles._drawing import (
+    N_VERTICES,
+    DrawOptions,
+    bin_primitives,
+    needed_entries,
+    needed_span,
+    primitives,
+    render,
+)
 
 N = 64
 
@@ -184,6 +192,33 @@ def test_tiled_rasteriser_matches_brute_force(level):
     # another tile size and capacity give the same map (performance settings only)
     other = draw(key, graph, weights, quiet, (N, N), tile=N, capacity=7)
     np.testing.assert_allclose(other, got, atol=1e-5)
+
+
+def test_packed_bins_and_passes_as_needed_draw_the_same_map(level):
+    """Packing the (primitive, tile) pairs before sorting, and drawing each tile with as many
+    passes as it needs (the swarm's fast path), change nothing but the cost."""
+    graph, weights, params = level
+    key = jax.random.key(5)
+    prims = primitives(key, graph, weights, params)
+    sizes = {"tile": 8, "bulge": True, "periodic": True}
+    span = needed_span(prims, (N, N), **sizes)
+    pairs = needed_entries(prims, (N, N), **sizes)
+    full = bin_primitives(prims, (N, N), span=span, **sizes)
+    packed = bin_primitives(prims, (N, N), span=span, entries=pairs, **sizes)
+    assert not bool(full.overflow) and not bool(packed.overflow)
+    np.testing.assert_array_equal(packed.count, full.count)
+    np.testing.assert_array_equal(packed.start, full.start)
+    np.testing.assert_array_equal(packed.order[:pairs], full.order[:pairs])
+    assert bool(bin_primitives(prims, (N, N), span=span, entries=pairs - 1, **sizes).overflow)
+
+    passes = -(-int(jnp.max(full.count)) // 4)
+    opts = DrawOptions(tile=8, capacity=4, span=span, passes=passes)
+    static = render(key, prims, full, params, (N, N), opts, True)
+    as_needed = jax.jit(
+        lambda p, b: render(key, p, b, params, (N, N), opts._replace(passes=None), True)
+    )(prims, packed)
+    np.testing.assert_allclose(as_needed, static, atol=1e-6)
+    assert float(jnp.std(static)) > 0.01
 
 
 def test_jit_eager_vmap_determinism_and_grad(level):

@@ -2,6 +2,7 @@
 gradient refinement, the CLI, bad input. A small setting (64², α_d near its top, few agents):
 the fitted pipeline compiles once per module."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,7 +44,7 @@ def fit(target):
 
 def test_recovers_deposit_and_orientation(fit, target):
     layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 30, 4)
-    loss = jax.vmap(_SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, NAMES))
+    loss = eqx.filter_jit(_SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, NAMES))
     # the truth and α_deposit 0.3 / 0.9 with the others at truth (one compiled call)
     points = jnp.array([[0.6, 1.0, 0.3], [0.3, 1.0, 0.3], [0.9, 1.0, 0.3]], jnp.float32)
     true_loss, low, high = (float(v) for v in loss(points))

@@ -61,6 +61,7 @@ class _Settings(eqx.Module):
     c1: float = eqx.field(static=True)
     c2: float = eqx.field(static=True)
     inertia: tuple[float, float, float] = eqx.field(static=True)
+    batched: bool = eqx.field(static=True)
 
 
 def pso(
@@ -78,6 +79,7 @@ def pso(
     c1: float = 2.0,
     c2: float = 2.0,
     inertia: tuple[float, float, float] = (0.4, 0.6, 0.98),
+    batched: bool = False,
     progress: Progress | None = None,
 ) -> PSOResult:
     """Minimise ``loss_fn`` over a box with a particle swarm (Eq. 14–15 of Weiss et al. 2023).
@@ -116,6 +118,9 @@ def pso(
         boundary: "random_absorb", "nearest_absorb" or "reflect".
         cyclic: ``None`` or a boolean mask ``(P,)`` of periodic parameters.
         dt, c1, c2, inertia: Δt of Eq. 15, the coefficients and the inertia schedule of Eq. 14.
+        batched: ``loss_fn`` maps the whole swarm ``(n_agents, P)`` to ``(n_agents,)`` itself
+            instead of being vmapped (e.g. to evaluate agents one after the other with
+            ``lax.map`` when each agent's cost depends on its parameters).
         progress: optional ``progress(trial, epoch, best_loss)`` called after every epoch from
             inside the jitted run (for a progress bar on long runs).
 
@@ -144,11 +149,14 @@ def pso(
         c1=_checks.real(c1, "c1", low=0.0),
         c2=_checks.real(c2, "c2", low=0.0),
         inertia=tuple(_checks.real(v, "inertia", low=0.0) for v in _triple(inertia)),
+        batched=bool(batched),
     )
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
-    out = eqx.filter_eval_shape(loss_fn, jax.ShapeDtypeStruct((n,), jnp.float32))
-    if not (isinstance(out, jax.ShapeDtypeStruct) and out.shape == () and out.dtype.kind == "f"):
-        raise TypeError(f"loss_fn must return a scalar float for a ({n},) vector, got {out}")
+    given, wanted = ((settings.n_agents, n), (settings.n_agents,)) if batched else ((n,), ())
+    out = eqx.filter_eval_shape(loss_fn, jax.ShapeDtypeStruct(given, jnp.float32))
+    if not (isinstance(out, jax.ShapeDtypeStruct) and out.shape == wanted) or out.dtype.kind != "f":
+        what = "one loss per agent" if batched else "a scalar float"
+        raise TypeError(f"loss_fn must return {what} for a {given} input, got {out}")
     keys = jax.random.split(key, n_trials)
     return _run(keys, loss_fn, low, high, cyclic, settings, progress)
 
@@ -213,7 +221,8 @@ def _trial(key, index, loss_fn, low, high, cyclic, settings: _Settings, progress
     m, n = settings.n_agents, low.shape[0]
 
     def evaluate(x: Float[Array, "M P"]) -> tuple[Float[Array, " M"], Int[Array, ""]]:
-        s = jax.vmap(loss_fn)(low + x * (high - low)).astype(jnp.float32)
+        units = low + x * (high - low)
+        s = (loss_fn(units) if settings.batched else jax.vmap(loss_fn)(units)).astype(jnp.float32)
         finite = jnp.isfinite(s)
         return jnp.where(finite, s, jnp.inf), jnp.sum(~finite)
 

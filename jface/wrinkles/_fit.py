@@ -31,7 +31,16 @@ from jaxtyping import Array, Float
 from jface import _checks
 from jface.optim import PSOResult, TextureStats, pso, texture_distance, texture_stats
 from jface.optim._texture import _stats
-from jface.wrinkles._drawing import bin_primitives, draw, needed_span, primitives
+from jface.wrinkles._drawing import (
+    BETA,
+    N_HAT,
+    DrawOptions,
+    bin_primitives,
+    needed_entries,
+    needed_span,
+    primitives,
+    render,
+)
 from jface.wrinkles._graph import PoreGraph, build_graph, covering_spec, stack_graphs
 from jface.wrinkles._params import PARAMETER_RANGES, WrinkleParams
 from jface.wrinkles._sampling import sample_pores
@@ -90,7 +99,7 @@ class _Layout(eqx.Module):
     n_samples: tuple[int, int] = eqx.field(static=True)
     n_steps: int = eqx.field(static=True)
     span: tuple[int, int] = eqx.field(static=True)
-    passes: tuple[int, int] = eqx.field(static=True)
+    entries: tuple[int, int] = eqx.field(static=True)
 
     def select(self, d) -> tuple[Array, tuple[PoreGraph, PoreGraph]]:
         """The grid value nearest to α_d and its two graphs."""
@@ -133,29 +142,30 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     # the simulation's N: its default for the densest graph of the range (the fit's objective
     # does not depend on how tightly the graphs are stored)
     n_samples = tuple(min(N_SAMPLES, specs[level].k * caps[level]) for level in range(2))
-    span, passes = _draw_sizes(k1, d_values, graphs, shape, n_samples, n_steps)
+    span, entries = _draw_sizes(k1, d_values, graphs, shape, n_samples, n_steps)
     return _Layout(
-        jnp.asarray(d_values), graphs, tuple(size), shape, n_samples, n_steps, span, passes
+        jnp.asarray(d_values), graphs, tuple(size), shape, n_samples, n_steps, span, entries
     )
 
 
 def _draw_sizes(key, d_values, graphs, shape, n_samples, n_steps):
-    """Tile span and passes per level that draw the densest and the sparsest α_d of the grid with
-    the simulation's default weights and the drawing fields at ``_WIDE``, with headroom."""
-    spans, passes = [], []
+    """Tile span and binned (primitive, tile) pairs per level that draw the densest and the
+    sparsest α_d of the grid with the simulation's default weights and the drawing fields at
+    ``_WIDE``, with headroom."""
+    spans, entries = [], []
     for level, bulge in enumerate((True, False)):
-        span, count = 1, 1
+        span, pairs = 1, 1
         for i in (0, len(d_values) - 1):
             g = jax.tree.map(lambda a, i=i: a[i], graphs[level])
             params = WrinkleParams(d=float(d_values[i]) / (1 + level), **_WIDE)
             w = simulate(key, g, params, n_steps=n_steps, n_samples=n_samples[level])
             prims = primitives(key, g, w, params)
-            need = needed_span(prims, shape, tile=_TILE, bulge=bulge, periodic=True)
-            bins = bin_primitives(prims, shape, tile=_TILE, span=need, bulge=bulge, periodic=True)
-            span, count = max(span, need), max(count, int(jnp.max(bins.count)))
+            sizes = dict(shape=shape, tile=_TILE, bulge=bulge, periodic=True)
+            span = max(span, needed_span(prims, **sizes))
+            pairs = max(pairs, needed_entries(prims, **sizes))
         spans.append(span + 2)
-        passes.append(-(-2 * count // _CAPACITY))
-    return tuple(spans), tuple(passes)
+        entries.append(2 * pairs)
+    return tuple(spans), tuple(entries)
 
 
 def _simulate(key, levels: tuple[WrinkleParams, WrinkleParams], layout: _Layout):
@@ -175,31 +185,57 @@ def _draw(key, sims, levels, layout: _Layout) -> Float[Array, "H W"]:
     return _draw_checked(key, sims, levels, layout)[0]
 
 
-def _draw_checked(key, sims, levels, layout: _Layout) -> tuple[Float[Array, "H W"], Array]:
+def _draw_checked(
+    key, sims, levels, layout: _Layout, passes=(None, None)
+) -> tuple[Float[Array, "H W"], Array]:
     """Like :func:`_draw`, plus whether some level was too large for the static draw sizes.
 
     Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into one huge pore) can make a
-    primitive exceed the tile span or a tile hold more primitives than the passes take, which
-    would abort the whole swarm. Such a level is drawn without wrinkles (a safe stand-in) and
-    flagged, so its loss becomes NaN, which the swarm contains and counts.
+    primitive exceed the tile span or make more (primitive, tile) pairs than the bins hold, which
+    would leave the map incomplete. Such a level is drawn without primitives and flagged, so its
+    loss becomes NaN, which the swarm contains and counts. ``passes=None`` draws every tile with
+    as many passes as it needs (the swarm: fast, no gradients); static passes keep the map
+    differentiable (the refinement), and a tile holding more is flagged too.
     """
-    k1, k2 = jax.random.split(jax.random.fold_in(key, 7))
     out, bad = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool)
-    for i, (k, (graph, w), params) in enumerate(zip((k1, k2), sims, levels, strict=True)):
-        bulge, span, passes = i == 0, layout.span[i], layout.passes[i]
-        prims = primitives(jax.random.split(k)[0], graph, w, params)
-        bins = bin_primitives(
-            prims, layout.shape, tile=_TILE, span=span, bulge=bulge, periodic=True
-        )
-        over = bins.overflow | (jnp.max(bins.count) > passes * _CAPACITY)
-        safe = _with(params, {"pore_width": jnp.where(over, 0.01, params.pore_width)})
-        w = jnp.where(over, 0.0, w)
-        out = out + draw(
-            k, graph, w, safe, layout.shape, tile=_TILE, span=span, passes=passes,
-            capacity=_CAPACITY, bulge=bulge,
-        )  # fmt: skip
+    for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout)):
+        opts = _options(i, layout, passes[i])
+        over = bins.overflow
+        if passes[i] is not None:
+            over = over | (jnp.max(bins.count) > passes[i] * _CAPACITY)
+        bins = bins._replace(count=jnp.where(over, 0, bins.count))  # draw no primitive then
+        out = out + render(k_noise, prims, bins, levels[i], layout.shape, opts, True)
         bad = bad | over
     return out[: layout.size[0], : layout.size[1]], bad
+
+
+def _options(level: int, layout: _Layout, passes=None) -> DrawOptions:
+    """Rasteriser settings of a level (the finest without bulge, as in the paper)."""
+    return DrawOptions(
+        bulge=level == 0, tile=_TILE, capacity=_CAPACITY, span=layout.span[level],
+        passes=passes, beta=BETA, n_hat=N_HAT, entries=layout.entries[level],
+    )  # fmt: skip
+
+
+def _binned(key, sims, levels, layout: _Layout):
+    """Per level: the noise key, the primitives and their bins."""
+    for i, (k, (graph, w), params) in enumerate(
+        zip(jax.random.split(jax.random.fold_in(key, 7)), sims, levels, strict=True)
+    ):
+        opts = _options(i, layout)
+        k_perturb, k_noise = jax.random.split(k)
+        prims = primitives(k_perturb, graph, w, params)
+        bins = bin_primitives(
+            prims, layout.shape, tile=_TILE, span=opts.span, bulge=opts.bulge, periodic=True,
+            entries=opts.entries,
+        )  # fmt: skip
+        yield k_noise, prims, bins
+
+
+@eqx.filter_jit
+def _fullest_tiles(key, sims, levels, layout: _Layout) -> tuple[Array, ...]:
+    """Primitives in the fullest tile of each level."""
+    return tuple(jnp.max(bins.count) for _, _, bins in _binned(key, sims, levels, layout))
 
 
 def _levels_from(x: Array, names: Sequence[str], base: tuple[WrinkleParams, WrinkleParams]):
@@ -227,7 +263,9 @@ def _with(params: WrinkleParams, changes: dict[str, Array]) -> WrinkleParams:
 
 
 class _SwarmLoss(eqx.Module):
-    """Loss of one agent: simulate, draw, compare statistics (arrays are traced leaves)."""
+    """Losses of the swarm ``(M, P) → (M,)``: simulate, draw, compare statistics (arrays are
+    traced leaves). The agents simulate together (``vmap``) but draw one after the other
+    (``lax.map``), each with the passes its own tiles need rather than the densest agent's."""
 
     key: Array
     target: Any
@@ -235,10 +273,15 @@ class _SwarmLoss(eqx.Module):
     layout: _Layout
     names: tuple[str, ...] = eqx.field(static=True)
 
-    def __call__(self, x):
-        sims, levels = _simulate(self.key, _levels_from(x, self.names, self.base), self.layout)
-        image, bad = _draw_checked(self.key, sims, levels, self.layout)
-        return jnp.where(bad, jnp.nan, _loss(image, self.target))
+    def __call__(self, xs):
+        def simulate(x):
+            return _simulate(self.key, _levels_from(x, self.names, self.base), self.layout)
+
+        def one(agent):
+            image, bad = _draw_checked(self.key, *agent, self.layout)
+            return jnp.where(bad, jnp.nan, _loss(image, self.target))
+
+        return jax.lax.map(one, jax.vmap(simulate)(xs))
 
 
 def _loss(image, target: TextureStats) -> Float[Array, ""]:
@@ -352,6 +395,7 @@ def fit_wrinkles(
                 n_agents=n_agents,
                 n_epochs=n_epochs,
                 cyclic=cyclic,
+                batched=True,
                 progress=reporter,
             )
         )
@@ -400,8 +444,14 @@ def _refine(sim_key, levels, layout, target_stats, names, steps):
             changes[lv][f] = lo + (hi - lo) * jax.nn.sigmoid(z[i])
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
 
+    # passes that suffice for the drawing fields anywhere in their ranges (bounding boxes grow
+    # with every one of them), so the refinement never meets an undrawable tile
+    widest = {f: PARAMETER_RANGES[f][1] for f in _WIDE}
+    fullest = _fullest_tiles(sim_key, sims, tuple(p.replace(**widest) for p in levels), layout)
+    passes = tuple(max(1, -(-int(c) // _CAPACITY)) for c in fullest)
+
     def loss(z, _):
-        image, bad = _draw_checked(sim_key, sims, unpack(z), layout)
+        image, bad = _draw_checked(sim_key, sims, unpack(z), layout, passes)
         return jnp.where(bad, jnp.inf, _loss(image, target_stats))  # the line search backs off
 
     def logit(lv, f):
