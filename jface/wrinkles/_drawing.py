@@ -241,10 +241,11 @@ def bin_primitives(
 ) -> Bins:  # fmt: skip
     """Bin primitives to ``tile``-pixel screen tiles (each to ≤ ``span`` tiles per axis).
 
-    With ``entries`` (static), the (primitive, tile) pairs are first packed into that many slots,
-    so the sort handles the pairs that exist rather than ``m · span²`` candidates (most of them
-    empty); more pairs than ``entries`` set ``overflow``.
+    The (primitive, tile) pairs are enumerated into ``entries`` slots (static; default
+    ``m · span²``, always enough) and sorted by tile. A primitive wider than ``span`` tiles, or
+    more pairs than ``entries``, set ``overflow``.
     """
+    m = prims.valid.shape[0]
     gy, gx = -(-shape[0] // tile), -(-shape[1] // tile)
     first, n = _tile_range(*_bbox(prims, bulge), shape, tile)
     grid = jnp.array([gx, gy], jnp.int32)
@@ -253,30 +254,30 @@ def bin_primitives(
     else:  # clip to the image first: only visible tiles count
         last = jnp.minimum(first + n - 1, grid - 1)
         first = jnp.maximum(first, 0)
-        n = last - first + 1
+        n = jnp.maximum(last - first + 1, 0)
     overflow = jnp.any(prims.valid[:, None] & (n > span))
-    o = jnp.arange(span, dtype=jnp.int32)
-    tx = first[:, 0, None, None] + o[None, None, :]  # (m, 1, span)
-    ty = first[:, 1, None, None] + o[None, :, None]  # (m, span, 1)
-    ok = prims.valid[:, None, None] & (o[None, None, :] < n[:, 0, None, None])
-    ok = ok & (o[None, :, None] < n[:, 1, None, None])
+    n = jnp.where(prims.valid[:, None], jnp.minimum(n, span), 0)
+    pairs = n[:, 0] * n[:, 1]
+    end = jnp.cumsum(pairs)
+    entries = m * span * span if entries is None else entries
+    overflow = overflow | (end[-1] > entries)
+    # slot j holds pair j: primitive i with end[i-1] <= j < end[i], its (j - end[i-1])-th tile
+    j = jnp.arange(entries, dtype=jnp.int32)
+    i = jnp.minimum(jnp.searchsorted(end, j, side="right"), m - 1).astype(jnp.int32)
+    local = j - (end[i] - pairs[i])
+    nx = jnp.maximum(n[i, 0], 1)
+    tx, ty = first[i, 0] + local % nx, first[i, 1] + local // nx
     if periodic:
         tx, ty = jnp.mod(tx, gx), jnp.mod(ty, gy)
     empty = gy * gx
-    tile_id = jnp.where(ok, ty * gx + tx, empty).reshape(-1)
-    prim_id = jnp.broadcast_to(
-        jnp.arange(prims.valid.shape[0], dtype=jnp.int32)[:, None, None], ok.shape
-    ).reshape(-1)
-    if entries is not None:
-        ok = ok.reshape(-1)
-        slot = jnp.where(ok, jnp.cumsum(ok) - 1, entries)  # past the end: dropped
-        overflow = overflow | (jnp.sum(ok) > entries)
-        tile_id = jnp.full(entries, empty, jnp.int32).at[slot].set(tile_id, mode="drop")
-        prim_id = jnp.zeros(entries, jnp.int32).at[slot].set(prim_id, mode="drop")
-    order = jnp.argsort(tile_id, stable=True)
+    tile_id = jnp.where(j < end[-1], ty * gx + tx, empty)
+    if (empty + 1) * m < 2**31:  # one int32 key (tile, primitive): a plain sort, 5x an argsort
+        by_tile = jnp.sort(tile_id * m + i) % m
+    else:
+        by_tile = i[jnp.argsort(tile_id, stable=True)]
     count = jnp.bincount(tile_id, length=empty + 1)[:-1].astype(jnp.int32)
     start = (jnp.cumsum(count) - count).astype(jnp.int32)
-    return Bins(prim_id[order], start, count, overflow)
+    return Bins(by_tile, start, count, overflow)
 
 
 def _fragments(prims: Primitives, q, periodic, bulge):
