@@ -217,8 +217,9 @@ def _options(level: int, layout: _Layout, passes=None) -> DrawOptions:
     )  # fmt: skip
 
 
-def _binned(key, sims, levels, layout: _Layout):
-    """Per level: the noise key, the primitives and their bins."""
+def _binned(key, sims, levels, layout: _Layout, packed: bool = True):
+    """Per level: the noise key, the primitives and their bins (``packed=False``: room for every
+    pair, however many)."""
     for i, (k, (graph, w), params) in enumerate(
         zip(jax.random.split(jax.random.fold_in(key, 7)), sims, levels, strict=True)
     ):
@@ -227,7 +228,7 @@ def _binned(key, sims, levels, layout: _Layout):
         prims = primitives(k_perturb, graph, w, params)
         bins = bin_primitives(
             prims, layout.shape, tile=_TILE, span=opts.span, bulge=opts.bulge, periodic=True,
-            entries=opts.entries,
+            entries=opts.entries if packed else None,
         )  # fmt: skip
         yield k_noise, prims, bins
 
@@ -235,7 +236,8 @@ def _binned(key, sims, levels, layout: _Layout):
 @eqx.filter_jit
 def _fullest_tiles(key, sims, levels, layout: _Layout) -> tuple[Array, ...]:
     """Primitives in the fullest tile of each level."""
-    return tuple(jnp.max(bins.count) for _, _, bins in _binned(key, sims, levels, layout))
+    binned = _binned(key, sims, levels, layout, packed=False)
+    return tuple(jnp.max(bins.count) for _, _, bins in binned)
 
 
 def _levels_from(x: Array, names: Sequence[str], base: tuple[WrinkleParams, WrinkleParams]):
