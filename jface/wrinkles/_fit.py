@@ -37,7 +37,6 @@ from jface.wrinkles._drawing import (
     DrawOptions,
     bin_primitives,
     needed_entries,
-    needed_span,
     primitives,
     render,
 )
@@ -142,30 +141,30 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     # the simulation's N: its default for the densest graph of the range (the fit's objective
     # does not depend on how tightly the graphs are stored)
     n_samples = tuple(min(N_SAMPLES, specs[level].k * caps[level]) for level in range(2))
-    span, entries = _draw_sizes(k1, d_values, graphs, shape, n_samples, n_steps)
+    entries = _draw_entries(k1, d_values, graphs, shape, n_samples, n_steps)
+    # the bins enumerate pairs, so a primitive may touch every tile at no extra cost
+    span = (max(shape) // _TILE,) * 2
     return _Layout(
         jnp.asarray(d_values), graphs, tuple(size), shape, n_samples, n_steps, span, entries
     )
 
 
-def _draw_sizes(key, d_values, graphs, shape, n_samples, n_steps):
-    """Tile span and binned (primitive, tile) pairs per level that draw the densest and the
-    sparsest α_d of the grid with the simulation's default weights and the drawing fields at
-    ``_WIDE``, with headroom."""
-    spans, entries = [], []
+def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int, int]:
+    """Binned (primitive, tile) pairs per level that draw the densest and the sparsest α_d of
+    the grid with the simulation's default weights and the drawing fields at ``_WIDE``, with
+    headroom (2x)."""
+    entries = []
     for level, bulge in enumerate((True, False)):
-        span, pairs = 1, 1
+        pairs = 1
         for i in (0, len(d_values) - 1):
             g = jax.tree.map(lambda a, i=i: a[i], graphs[level])
             params = WrinkleParams(d=float(d_values[i]) / (1 + level), **_WIDE)
             w = simulate(key, g, params, n_steps=n_steps, n_samples=n_samples[level])
             prims = primitives(key, g, w, params)
-            sizes = dict(shape=shape, tile=_TILE, bulge=bulge, periodic=True)
-            span = max(span, needed_span(prims, **sizes))
-            pairs = max(pairs, needed_entries(prims, **sizes))
-        spans.append(span + 2)
+            need = needed_entries(prims, shape, tile=_TILE, bulge=bulge, periodic=True)
+            pairs = max(pairs, need)
         entries.append(2 * pairs)
-    return tuple(spans), tuple(entries)
+    return tuple(entries)
 
 
 def _simulate(key, levels: tuple[WrinkleParams, WrinkleParams], layout: _Layout):
@@ -190,12 +189,12 @@ def _draw_checked(
 ) -> tuple[Float[Array, "H W"], Array]:
     """Like :func:`_draw`, plus whether some level was too large for the static draw sizes.
 
-    Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into one huge pore) can make a
-    primitive exceed the tile span or make more (primitive, tile) pairs than the bins hold, which
-    would leave the map incomplete. Such a level is drawn without primitives and flagged, so its
-    loss becomes NaN, which the swarm contains and counts. ``passes=None`` draws every tile with
-    as many passes as it needs (the swarm: fast, no gradients); static passes keep the map
-    differentiable (the refinement), and a tile holding more is flagged too.
+    Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into huge pores) can make more
+    (primitive, tile) pairs than the bins hold, which would leave the map incomplete. Such a
+    level is drawn without primitives and flagged, so its loss becomes NaN, which the swarm
+    contains and counts. ``passes=None`` draws every tile with as many passes as it needs (the
+    swarm: fast, no gradients); static passes keep the map differentiable (the refinement), and
+    a tile holding more is flagged too.
     """
     out, bad = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool)
     for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout)):
@@ -217,9 +216,9 @@ def _options(level: int, layout: _Layout, passes=None) -> DrawOptions:
     )  # fmt: skip
 
 
-def _binned(key, sims, levels, layout: _Layout, packed: bool = True):
-    """Per level: the noise key, the primitives and their bins (``packed=False``: room for every
-    pair, however many)."""
+def _binned(key, sims, levels, layout: _Layout, room: int = 1):
+    """Per level: the noise key, the primitives and their bins (with ``room`` times the layout's
+    pairs)."""
     for i, (k, (graph, w), params) in enumerate(
         zip(jax.random.split(jax.random.fold_in(key, 7)), sims, levels, strict=True)
     ):
@@ -228,15 +227,16 @@ def _binned(key, sims, levels, layout: _Layout, packed: bool = True):
         prims = primitives(k_perturb, graph, w, params)
         bins = bin_primitives(
             prims, layout.shape, tile=_TILE, span=opts.span, bulge=opts.bulge, periodic=True,
-            entries=opts.entries if packed else None,
+            entries=opts.entries * room,
         )  # fmt: skip
         yield k_noise, prims, bins
 
 
 @eqx.filter_jit
 def _fullest_tiles(key, sims, levels, layout: _Layout) -> tuple[Array, ...]:
-    """Primitives in the fullest tile of each level."""
-    binned = _binned(key, sims, levels, layout, packed=False)
+    """Primitives in the fullest tile of each level (room for 4x the layout's pairs: the widest
+    drawing fields make more of them)."""
+    binned = _binned(key, sims, levels, layout, room=4)
     return tuple(jnp.max(bins.count) for _, _, bins in binned)
 
 
