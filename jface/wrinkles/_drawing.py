@@ -10,10 +10,12 @@ the offset is interpolated linearly in between, which is the exact inverse of di
 band's vertices.
 
 The rasteriser bins primitives to square screen tiles (each primitive to the at most
-``span × span`` tiles its bounding box touches, sorted by tile), then evaluates each tile's pixels
-against its primitives in ``passes`` chunks of ``capacity`` with the blend accumulated additively
-(as in the paper's three-channel framebuffer, with a running maximum for float32 range), so any
-resolution works with memory bounded by the tile batch.
+``span × span`` tiles its bounding box touches: the pairs are enumerated and sorted by tile), then
+evaluates each tile's pixels against its primitives in ``passes`` chunks of ``capacity`` with the
+blend accumulated additively (as in the paper's three-channel framebuffer, with a running maximum
+for float32 range), so any resolution works with memory bounded by the tile batch. A static
+number of passes keeps the map reverse-differentiable; without gradients (:func:`render` with
+``passes=None``) each tile batch takes only the passes its fullest tile needs.
 """
 
 from __future__ import annotations
