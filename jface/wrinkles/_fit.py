@@ -216,9 +216,8 @@ def _options(level: int, layout: _Layout, passes=None) -> DrawOptions:
     )  # fmt: skip
 
 
-def _binned(key, sims, levels, layout: _Layout, room: int = 1):
-    """Per level: the noise key, the primitives and their bins (with ``room`` times the layout's
-    pairs)."""
+def _binned(key, sims, levels, layout: _Layout):
+    """Per level: the noise key, the primitives and their bins."""
     for i, (k, (graph, w), params) in enumerate(
         zip(jax.random.split(jax.random.fold_in(key, 7)), sims, levels, strict=True)
     ):
@@ -227,17 +226,15 @@ def _binned(key, sims, levels, layout: _Layout, room: int = 1):
         prims = primitives(k_perturb, graph, w, params)
         bins = bin_primitives(
             prims, layout.shape, tile=_TILE, span=opts.span, bulge=opts.bulge, periodic=True,
-            entries=opts.entries * room,
+            entries=opts.entries,
         )  # fmt: skip
         yield k_noise, prims, bins
 
 
 @eqx.filter_jit
 def _fullest_tiles(key, sims, levels, layout: _Layout) -> tuple[Array, ...]:
-    """Primitives in the fullest tile of each level (room for 4x the layout's pairs: the widest
-    drawing fields make more of them)."""
-    binned = _binned(key, sims, levels, layout, room=4)
-    return tuple(jnp.max(bins.count) for _, _, bins in binned)
+    """Primitives in the fullest tile of each level."""
+    return tuple(jnp.max(bins.count) for _, _, bins in _binned(key, sims, levels, layout))
 
 
 def _levels_from(x: Array, names: Sequence[str], base: tuple[WrinkleParams, WrinkleParams]):
@@ -446,11 +443,10 @@ def _refine(sim_key, levels, layout, target_stats, names, steps):
             changes[lv][f] = lo + (hi - lo) * jax.nn.sigmoid(z[i])
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
 
-    # passes that suffice for the drawing fields anywhere in their ranges (bounding boxes grow
-    # with every one of them), so the refinement never meets an undrawable tile
-    widest = {f: PARAMETER_RANGES[f][1] for f in _WIDE}
-    fullest = _fullest_tiles(sim_key, sims, tuple(p.replace(**widest) for p in levels), layout)
-    passes = tuple(max(1, -(-int(c) // _CAPACITY)) for c in fullest)
+    # static passes (differentiable) for twice the start's fullest tile: a step whose wider
+    # fields need more is undrawable (inf) and the line search backs off
+    fullest = _fullest_tiles(sim_key, sims, levels, layout)
+    passes = tuple(max(1, -(-2 * int(c) // _CAPACITY)) for c in fullest)
 
     def loss(z, _):
         image, bad = _draw_checked(sim_key, sims, unpack(z), layout, passes)
