@@ -152,13 +152,7 @@ def pso(
         batched=bool(batched),
     )
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
-    given, wanted = ((settings.n_agents, n), (settings.n_agents,)) if batched else ((n,), ())
-    out = eqx.filter_eval_shape(loss_fn, jax.ShapeDtypeStruct(given, jnp.float32))
-    if not (isinstance(out, jax.ShapeDtypeStruct) and out.shape == wanted) or out.dtype.kind != "f":
-        what = "one loss per agent" if batched else "a scalar float"
-        raise TypeError(f"loss_fn must return {what} for a {given} input, got {out}")
-    keys = jax.random.split(key, n_trials)
-    return _run(keys, loss_fn, low, high, cyclic, settings, progress)
+    return _run(key, n_trials, loss_fn, low, high, cyclic, settings, progress)
 
 
 def _triple(inertia: Any) -> tuple:
@@ -167,7 +161,7 @@ def _triple(inertia: Any) -> tuple:
     return tuple(inertia)
 
 
-def _check_bounds(bounds: Any) -> tuple[Array, Array]:
+def _check_bounds(bounds: Any) -> tuple[np.ndarray, np.ndarray]:
     try:
         arr = np.asarray(bounds, dtype=np.float64)
     except (TypeError, ValueError) as err:
@@ -183,27 +177,29 @@ def _check_bounds(bounds: Any) -> tuple[Array, Array]:
             f"bounds must have low < high in every dimension, got low={arr[0, i]} >= "
             f"high={arr[1, i]} in dimension {i}"
         )
-    return jnp.asarray(arr[0], jnp.float32), jnp.asarray(arr[1], jnp.float32)
+    # numpy, not jax arrays: the jitted run takes them as inputs without a device_put each call
+    return arr[0].astype(np.float32), arr[1].astype(np.float32)
 
 
-def _check_cyclic(cyclic: Any, n: int) -> Array:
+def _check_cyclic(cyclic: Any, n: int) -> np.ndarray:
     if cyclic is None:
-        return jnp.zeros(n, bool)
+        return np.zeros(n, bool)
     mask = np.asarray(cyclic)
     if mask.dtype != bool or mask.shape != (n,):
         raise ValueError(
             f"cyclic must be a boolean mask of shape ({n},), got {_checks.describe(mask)}"
         )
-    return jnp.asarray(mask)
+    return mask
 
 
 @eqx.filter_jit
-def _run(keys, loss_fn, low, high, cyclic, settings: _Settings, progress) -> PSOResult:
+def _run(key, n_trials: int, loss_fn, low, high, cyclic, settings, progress) -> PSOResult:
     def trial(args):
         index, key = args
         return _trial(key, index, loss_fn, low, high, cyclic, settings, progress)
 
-    best_x, best_s, history, nonfinite = jax.lax.map(trial, (jnp.arange(keys.shape[0]), keys))
+    keys = jax.random.split(key, n_trials)
+    best_x, best_s, history, nonfinite = jax.lax.map(trial, (jnp.arange(n_trials), keys))
     winner = jnp.argmin(best_s)
     to_units = low + best_x * (high - low)
     return PSOResult(
@@ -222,7 +218,13 @@ def _trial(key, index, loss_fn, low, high, cyclic, settings: _Settings, progress
 
     def evaluate(x: Float[Array, "M P"]) -> tuple[Float[Array, " M"], Int[Array, ""]]:
         units = low + x * (high - low)
-        s = (loss_fn(units) if settings.batched else jax.vmap(loss_fn)(units)).astype(jnp.float32)
+        s = loss_fn(units) if settings.batched else jax.vmap(_scalar(loss_fn))(units)
+        if s.shape != (m,) or s.dtype.kind != "f":  # checked once, while tracing
+            raise TypeError(
+                f"loss_fn must return one loss per agent for a {(m, n)} input, got "
+                f"{_checks.describe(s)}"
+            )
+        s = s.astype(jnp.float32)
         finite = jnp.isfinite(s)
         return jnp.where(finite, s, jnp.inf), jnp.sum(~finite)
 
@@ -257,6 +259,21 @@ def _trial(key, index, loss_fn, low, high, cyclic, settings: _Settings, progress
     (_, _, p, ps, bad), history = jax.lax.scan(epoch, init, jnp.arange(settings.n_epochs))
     i = jnp.argmin(ps)
     return p[i], ps[i], jnp.concatenate([jnp.min(s)[None], history]), bad
+
+
+def _scalar(loss_fn: Callable) -> Callable:
+    """``loss_fn``, raising a clear error (while tracing) unless it returns a scalar float."""
+
+    def checked(x):
+        out = loss_fn(x)
+        if not hasattr(out, "shape") or out.shape != () or out.dtype.kind != "f":
+            raise TypeError(
+                f"loss_fn must return a scalar float for a {x.shape} input, got "
+                f"{_checks.describe(out)}"
+            )
+        return out
+
+    return checked
 
 
 def _uniform(seed: Array, t: Array, shape: tuple[int, ...]) -> Float[Array, "..."]:
