@@ -11,7 +11,7 @@ runs with c1 = c2 = 0.4, w = 0.7), and (c) jface with the paper's full schedule
 (jface Random+Absorb, pyswarms "periodic") and velocity initialisation. Goal: jface's median no
 worse than pyswarms'.
 
-Run: ``python benchmarks/bench_pso.py [--seeds 10]`` (needs the ``bench`` extra: pyswarms).
+Run: ``python benchmarks/bench_pso.py [--seeds 40]`` (needs the ``bench`` extra: pyswarms).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def rastrigin(x):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--seeds", type=int, default=40)
     args = parser.parse_args()
     import pyswarms as ps
     from pyswarms.utils.functions import single_obj
@@ -82,25 +82,24 @@ def main() -> None:
     for label, ours_options, theirs_options in cases:
         for topology, local in (("lbest", True), ("gbest", False)):
             settings = {"n_agents": AGENTS, "n_epochs": EPOCHS - 1, "topology": topology}
-            ours = np.median(
-                [
-                    float(
-                        pso(jax.random.key(s), rastrigin, BOUNDS, **settings, **ours_options).loss
-                    )
-                    for s in range(args.seeds)
-                ]
-            )
-            theirs = np.median(
-                [pyswarms_run(s, local, options=theirs_options) for s in range(args.seeds)]
-            )
+            ours = [
+                float(pso(jax.random.key(s), rastrigin, BOUNDS, **settings, **ours_options).loss)
+                for s in range(args.seeds)
+            ]
+            theirs = [pyswarms_run(s, local, options=theirs_options) for s in range(args.seeds)]
             row = {
                 "case": f"best cost at {AGENTS * EPOCHS} evaluations, {topology}, {label}, "
-                f"median of {args.seeds} seeds",
-                "jface": round(float(ours), 3),
-                "pyswarms": round(float(theirs), 3),
-                "jface_no_worse": bool(ours <= theirs),
+                f"median [quartiles] of {args.seeds} seeds",
+                "jface": _median_and_quartiles(ours),
+                "pyswarms": _median_and_quartiles(theirs),
+                "jface_no_worse": bool(np.median(ours) <= np.median(theirs)),
             }
             print(json.dumps(row), flush=True)
+
+
+def _median_and_quartiles(values: list[float]) -> str:
+    q1, median, q3 = np.percentile(values, [25, 50, 75])
+    return f"{median:.2f} [{q1:.2f}, {q3:.2f}]"
 
 
 if __name__ == "__main__":
