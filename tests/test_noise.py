@@ -1,11 +1,12 @@
-"""Perlin noise: range, determinism, seamless tiling, traced frequency, bad input."""
+"""Perlin noise: range, determinism, seamless tiling, traced frequency, bad input; the
+counter-based uniform numbers."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jface.noise import perlin, perlin_at
+from jface.noise import counter_bits, counter_uniform, perlin, perlin_at
 
 
 def test_grid_range_mean_and_determinism(key):
@@ -37,6 +38,24 @@ def test_smooth_and_frequency_may_be_traced(key):
     np.testing.assert_allclose(eager, traced, atol=1e-6)
     near = perlin_at(key, pts + 1e-4, frequency=3.5, octaves=2)
     assert float(jnp.max(jnp.abs(near - eager))) < 0.01  # continuous
+
+
+def test_counter_numbers_are_uniform_deterministic_and_unrelated_across_streams():
+    u = np.asarray(counter_uniform(jnp.uint32(7), jnp.uint32(0), (200_000,)))
+    np.testing.assert_array_equal(u, counter_uniform(jnp.uint32(7), jnp.uint32(0), (200_000,)))
+    assert u.min() >= 0.0 and u.max() < 1.0
+    counts = np.histogram(u, bins=100, range=(0, 1))[0]
+    chi2 = np.sum((counts - 2000.0) ** 2 / 2000.0)
+    assert chi2 < 160  # 99 degrees of freedom: p ≈ 1e-4
+    # neighbouring and far streams and seeds: no correlation, no shared values in any order
+    for seed, stream in ((7, 1), (7, 2), (7, 1 << 16), (8, 0)):
+        v = np.asarray(counter_uniform(jnp.uint32(seed), jnp.uint32(stream), (200_000,)))
+        assert abs(np.corrcoef(u, v)[0, 1]) < 0.01
+        assert np.mean(np.sort(u) == np.sort(v)) < 0.01
+    # words modulo n (the simulation's pore draws) stay uniform
+    draws = np.asarray(counter_bits(jnp.uint32(3), jnp.uint32(5), (100_000,)) % jnp.uint32(37))
+    counts = np.bincount(draws, minlength=37)
+    assert np.sum((counts - 100_000 / 37) ** 2 / (100_000 / 37)) < 75  # 36 dof: p ≈ 2e-4
 
 
 def test_bad_input(key, unchecked):

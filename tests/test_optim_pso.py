@@ -128,9 +128,10 @@ def test_every_evaluated_point_lies_in_the_bounds(key, boundary):
         jax.debug.callback(lambda p: seen.append(np.asarray(p)), x)
         return jnp.sum((x - 3.0) ** 2)
 
-    result = pso(key, loss, box(2, 1.0), n_agents=6, n_epochs=15, boundary=boundary)
+    # 30 epochs: every strategy ends within 0.2 of the corner for 20 of 20 seeds (15: not all)
+    result = pso(key, loss, box(2, 1.0), n_agents=6, n_epochs=30, boundary=boundary)
     points = np.stack(seen)
-    assert points.shape[0] >= 6 * 16
+    assert points.shape[0] >= 6 * 31
     assert np.all(points >= -1.0) and np.all(points <= 1.0)
     np.testing.assert_allclose(result.params, [1.0, 1.0], atol=0.2)
 

@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jface import _checks
-from jface.noise import _hash
+from jface.noise import counter_uniform
 
 Topology = Literal["lbest", "gbest"]
 Boundary = Literal["random_absorb", "nearest_absorb", "reflect"]
@@ -237,7 +237,7 @@ def _trial(key, index, loss_fn, low, high, cyclic, settings: _Settings, progress
 
     def epoch(state, t):
         x, v, p, ps, bad = state
-        r1, r2, r3 = _uniform(seed, t, (3, m, n))
+        r1, r2, r3 = counter_uniform(seed, t, (3, m, n))  # cheaper than threefry
         g = _neighbourhood_best(p, ps, settings.topology)
         w = a + b * jnp.power(jnp.float32(c), t.astype(jnp.float32))
         v = (
@@ -274,18 +274,6 @@ def _scalar(loss_fn: Callable) -> Callable:
         return out
 
     return checked
-
-
-def _uniform(seed: Array, t: Array, shape: tuple[int, ...]) -> Float[Array, "..."]:
-    """Uniform ``[0, 1)`` numbers for epoch ``t``: a counter-based integer hash (lowbias32).
-
-    Much cheaper than threefry for the ``3·M·P`` draws of every epoch, which would otherwise
-    dominate the swarm's own cost; statistical quality is ample for Eq. 14's ``r1, r2``.
-    """
-    stream = _hash(seed ^ _hash(t.astype(jnp.uint32)))
-    counter = jnp.arange(np.prod(shape), dtype=jnp.uint32).reshape(shape)
-    bits = _hash(counter ^ stream) >> 8  # top 24 bits: exact in float32
-    return bits.astype(jnp.float32) * jnp.float32(2.0**-24)
 
 
 def _report(progress: Progress, trial, epoch, best) -> None:
