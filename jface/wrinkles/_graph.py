@@ -378,6 +378,25 @@ def graph_spec(
     )
 
 
+def _edge_grid(pores: Pores, topo: dict) -> dict[str, int]:
+    """Edge-midpoint grid (cells ≥ half the longest edge) and cell capacity for concrete edges,
+    rounded (grid down to a multiple of 4, capacity up to one of 16) so similar graphs share a
+    compile of the crossing kernel."""
+    longest = max(float(jnp.max(topo["edge_length"])), 1e-6)
+    grid = max(1, math.floor(2.0 / longest))
+    if pores.periodic and grid < 5:
+        raise ValueError("the pores are too sparse for a periodic graph (edges longer than 0.4)")
+    grid = grid - grid % 4 if grid >= 8 else grid
+    mid = np.asarray(pores.positions)[np.asarray(topo["edge_nodes"][:, 0])] + 0.5 * np.asarray(
+        topo["edge_delta"]
+    )
+    mid = np.mod(mid, 1.0) if pores.periodic else mid
+    cells = np.clip(np.floor(mid * grid).astype(np.int64), 0, grid - 1)
+    ids = (cells[:, 1] * grid + cells[:, 0])[np.asarray(topo["edge_mask"])]
+    capacity = int(np.bincount(ids).max()) if ids.size else 1
+    return {"edge_grid": grid, "edge_cell_capacity": -(-capacity // 16) * 16}
+
+
 def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> PoreGraph:
     """The pore graph of §3.1.1: symmetric kNN edges, half-edges per node, crossing lists.
 
@@ -388,6 +407,8 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
     Args:
         pores: the nodes (e.g. from :func:`sample_pores`), valid ones first.
         spec: static sizes; default :func:`graph_spec` ``(pores, k=k)`` (needs concrete pores).
+            With concrete pores the edge-midpoint grid is sized from the edges present; the
+            spec's ``edge_grid`` and ``edge_cell_capacity`` serve traced ones.
         k: neighbours per pore when ``spec`` is not given.
 
     Returns:
@@ -422,24 +443,10 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
         if spec.knn_reach >= spec.knn_grid:
             break
         spec = spec._replace(knn_reach=min(2 * spec.knn_reach, spec.knn_grid))  # sparse pores
-    if not _checks.is_traced(topo["edge_length"]) and auto:
-        # size the midpoint grid from the longest edge actually present
-        longest = max(float(jnp.max(topo["edge_length"])), 1e-6)
-        edge_grid = max(1, math.floor(2.0 / longest))
-        if pores.periodic and edge_grid < 5:
-            raise ValueError(
-                "the pores are too sparse for a periodic graph (edges longer than 0.4)"
-            )
-        mid = np.asarray(pores.positions)[np.asarray(topo["edge_nodes"][:, 0])] + 0.5 * np.asarray(
-            topo["edge_delta"]
-        )
-        mid = np.mod(mid, 1.0) if pores.periodic else mid
-        cells = np.clip(np.floor(mid * edge_grid).astype(np.int64), 0, edge_grid - 1)
-        ids = (cells[:, 1] * edge_grid + cells[:, 0])[np.asarray(topo["edge_mask"])]
-        spec = spec._replace(
-            edge_grid=edge_grid,
-            edge_cell_capacity=int(np.bincount(ids).max()) if ids.size else 1,
-        )
+    if not _checks.is_traced(topo["edge_length"]):
+        # size the midpoint grid from the edges present: a spec covering a range of α_d sizes it
+        # for the sparsest pores, which costs the densest ~8x the candidate tests
+        spec = spec._replace(**_edge_grid(pores, topo))
     crossings, cmask, edge_overflow, max_cross = _crossing_lists(
         pores.positions, topo["edge_nodes"], topo["edge_delta"], topo["edge_mask"],
         topo["edge_count"], cap=spec.max_crossings, grid=spec.edge_grid,
@@ -527,6 +534,32 @@ def covering_spec(
     )
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4))
+def _trim(g: PoreGraph, n: int, e: int, d: int, c: int) -> PoreGraph:
+    """``g`` cut to ``n`` nodes, ``e`` edges, ``d`` half-edges per node (valid ones first) and
+    ``c`` crossings per edge."""
+    order = jnp.argsort(~g.half_mask, axis=-1, stable=True)[:n, :d]
+    half = {
+        name: jnp.take_along_axis(getattr(g, name)[:n], order, axis=-1)
+        for name in ("half_target", "half_edge", "half_angle", "half_length", "half_mask")
+    }
+    return PoreGraph(
+        positions=g.positions[:n],
+        node_mask=g.node_mask[:n],
+        node_count=g.node_count,
+        edge_nodes=g.edge_nodes[:e],
+        edge_delta=g.edge_delta[:e],
+        edge_length=g.edge_length[:e],
+        edge_angle=g.edge_angle[:e],
+        edge_mask=g.edge_mask[:e],
+        edge_count=g.edge_count,
+        crossings=g.crossings[:e, : max(c, 1)],
+        crossing_mask=g.crossing_mask[:e, : max(c, 1)],
+        periodic=g.periodic,
+        **half,
+    )
+
+
 def stack_graphs(graphs: list[PoreGraph] | tuple[PoreGraph, ...]) -> PoreGraph:
     """Concrete graphs of equal capacities stacked into a batch (leading axis), every slot axis
     (nodes, edges, half-edges per node, crossings per edge) trimmed to what some graph uses.
@@ -547,26 +580,4 @@ def stack_graphs(graphs: list[PoreGraph] | tuple[PoreGraph, ...]) -> PoreGraph:
     d = max(int(jnp.max(g.degree)) for g in graphs)
     c = max(int(jnp.max(jnp.sum(g.crossing_mask, -1))) for g in graphs)
 
-    def trim(g: PoreGraph) -> PoreGraph:
-        order = jnp.argsort(~g.half_mask, axis=-1, stable=True)[:n, :d]  # valid half-edges first
-        half = {
-            name: jnp.take_along_axis(getattr(g, name)[:n], order, axis=-1)
-            for name in ("half_target", "half_edge", "half_angle", "half_length", "half_mask")
-        }
-        return PoreGraph(
-            positions=g.positions[:n],
-            node_mask=g.node_mask[:n],
-            node_count=g.node_count,
-            edge_nodes=g.edge_nodes[:e],
-            edge_delta=g.edge_delta[:e],
-            edge_length=g.edge_length[:e],
-            edge_angle=g.edge_angle[:e],
-            edge_mask=g.edge_mask[:e],
-            edge_count=g.edge_count,
-            crossings=g.crossings[:e, : max(c, 1)],
-            crossing_mask=g.crossing_mask[:e, : max(c, 1)],
-            periodic=g.periodic,
-            **half,
-        )
-
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *[trim(g) for g in graphs])
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *[_trim(g, n, e, d, c) for g in graphs])
