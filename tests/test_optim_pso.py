@@ -103,7 +103,7 @@ def test_delta_is_the_shortest_cyclic_distance():
     np.testing.assert_allclose(d, [[-0.1, 0.9]], atol=1e-6)
 
 
-@pytest.mark.parametrize("boundary", ["random_absorb", "nearest_absorb", "reflect"])
+@pytest.mark.parametrize("boundary", ["random_absorb", "nearest_absorb", "reflect", "periodic"])
 def test_boundary_handling_keeps_positions_in_the_box(boundary):
     x = jnp.array([[-0.3, 0.5, 1.2, 1.7]])
     v = jnp.array([[-1.0, 0.2, 1.0, 1.0]])
@@ -114,12 +114,13 @@ def test_boundary_handling_keeps_positions_in_the_box(boundary):
         "random_absorb": ([0.25, 0.5, 0.75, 0.7], [0.0, 0.2, 0.0, 1.0]),
         "nearest_absorb": ([0.0, 0.5, 1.0, 0.7], [0.0, 0.2, 0.0, 1.0]),
         "reflect": ([0.3, 0.5, 0.8, 0.7], [1.0, 0.2, -1.0, 1.0]),
+        "periodic": ([0.7, 0.5, 0.2, 0.7], [-1.0, 0.2, 1.0, 1.0]),
     }[boundary]
     np.testing.assert_allclose(nx, [expected[0]], atol=1e-6)
     np.testing.assert_allclose(nv, [expected[1]], atol=1e-6)
 
 
-@pytest.mark.parametrize("boundary", ["random_absorb", "nearest_absorb", "reflect"])
+@pytest.mark.parametrize("boundary", ["random_absorb", "nearest_absorb", "reflect", "periodic"])
 def test_every_evaluated_point_lies_in_the_bounds(key, boundary):
     # the minimum lies outside the box: agents press against the bound all run long
     seen = []
@@ -128,12 +129,14 @@ def test_every_evaluated_point_lies_in_the_bounds(key, boundary):
         jax.debug.callback(lambda p: seen.append(np.asarray(p)), x)
         return jnp.sum((x - 3.0) ** 2)
 
-    # 30 epochs: every strategy ends within 0.2 of the corner for 20 of 20 seeds (15: not all)
+    # 30 epochs: the absorbing and reflecting strategies end within 0.2 of the corner for 20 of
+    # 20 seeds (15: not all)
     result = pso(key, loss, box(2, 1.0), n_agents=6, n_epochs=30, boundary=boundary)
     points = np.stack(seen)
     assert points.shape[0] >= 6 * 31
     assert np.all(points >= -1.0) and np.all(points <= 1.0)
-    np.testing.assert_allclose(result.params, [1.0, 1.0], atol=0.2)
+    if boundary != "periodic":  # wrapping sends an agent pressing on a bound to the far side
+        np.testing.assert_allclose(result.params, [1.0, 1.0], atol=0.2)
 
 
 def test_lbest_sees_only_its_ring_neighbours():
