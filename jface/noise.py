@@ -60,14 +60,15 @@ def counter_uniform(seed: Array, stream: Array, shape: tuple[int, ...]) -> Float
 
 
 #: gradient directions: 256 angles (1.4° apart) looked up, ~3x faster than a cos and a sin
-_DIRECTIONS = np.arange(256) * (2.0 * math.pi / 256)
+_ANGLES = np.arange(256) * (2.0 * math.pi / 256)
+_COS, _SIN = np.cos(_ANGLES), np.sin(_ANGLES)
 
 
 def _gradient(ix, iy, seed, dtype):
     """Unit gradient at integer lattice point ``(ix, iy)`` (int32 arrays)."""
     h = _hash(ix.astype(jnp.uint32) ^ _hash(iy.astype(jnp.uint32) ^ seed))
     i = (h >> 24).astype(jnp.int32)
-    return jnp.asarray(np.cos(_DIRECTIONS), dtype)[i], jnp.asarray(np.sin(_DIRECTIONS), dtype)[i]
+    return jnp.asarray(_COS, dtype)[i], jnp.asarray(_SIN, dtype)[i]
 
 
 def _fade(t):
