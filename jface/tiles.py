@@ -89,17 +89,18 @@ def tile_view(band: Float[Array, "*batch h w"], grid: int) -> Float[Array, "*bat
     return jnp.swapaxes(tiles, -3, -2)
 
 
-def tile_moments(
+def tile_variance(
     band: Float[Array, "*batch h w"], grid: int
 ) -> tuple[Float[Array, "*batch g g"], Float[Array, "*batch g g"]]:
-    """Mean and standard deviation (ddof=0) of each non-overlapping tile, in one pass.
+    """Mean and variance (ddof=0) of each non-overlapping tile, in one pass.
 
     Args:
         band: ``(..., h, w)``; ``grid`` must divide h and w (see :func:`check_tiles`).
         grid: tiles per side.
 
     Returns:
-        ``(mean, std)``, each ``(..., grid, grid)``.
+        ``(mean, variance)``, each ``(..., grid, grid)``; the variance is clamped at 0 against
+        rounding, and differentiable (no square root).
     """
     check_tiles(grid, band.shape)
     h, w = band.shape[-2:]
@@ -107,7 +108,16 @@ def tile_moments(
     blocks = band.reshape(*band.shape[:-2], grid, h // grid, grid, w // grid)
     mean = blocks.mean(axis=(-3, -1))
     second = (blocks * blocks).mean(axis=(-3, -1))
-    return mean, jnp.sqrt(jnp.maximum(second - mean * mean, 0.0))
+    return mean, jnp.maximum(second - mean * mean, 0.0)
+
+
+def tile_moments(
+    band: Float[Array, "*batch h w"], grid: int
+) -> tuple[Float[Array, "*batch g g"], Float[Array, "*batch g g"]]:
+    """Mean and standard deviation (ddof=0) of each non-overlapping tile, in one pass
+    (``(..., grid, grid)`` each; see :func:`tile_variance`)."""
+    mean, variance = tile_variance(band, grid)
+    return mean, jnp.sqrt(variance)
 
 
 def tile_std(band: Float[Array, "*batch h w"], grid: int) -> Float[Array, "*batch g g"]:

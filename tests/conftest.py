@@ -1,8 +1,5 @@
 """Strict numerics for every test: float64 available, strict dtype promotion, seeded keys."""
 
-from importlib import resources
-from pathlib import Path
-
 import jax
 import numpy as np
 import pytest
@@ -10,18 +7,25 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
-#: Real data that ships beside the repository (meshes, ICT-FaceKit); see its README.
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-
 
 @pytest.fixture(scope="session")
 def ict_model() -> dict[str, np.ndarray]:
     """The ICT-FaceKit face model that ships with jface (jface/data/ict_face_small.npz: the
     face-area mesh, its 10 leading identity modes and the smile), so tests need no shared data."""
-    from jface.io import load_arrays
+    from jface import data
 
-    with resources.as_file(resources.files("jface") / "data" / "ict_face_small.npz") as path:
-        return load_arrays(path, kind="FaceMeshModel")[0]
+    return data.ict_face_model()
+
+
+def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance from points to a triangle mesh (closest point over the 16 nearest triangles)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    _, cand = cKDTree(tri.mean(axis=1)).query(points, k=16)
+    q = trimesh.triangles.closest_point(tri[cand.ravel()], np.repeat(points, 16, axis=0))
+    return np.linalg.norm(q - np.repeat(points, 16, axis=0), axis=1).reshape(-1, 16).min(axis=1)
 
 
 @pytest.fixture

@@ -29,20 +29,25 @@ def test_interpolation_restores_detail(faces, key):
 
 def test_aging_reaches_old_statistics_and_beats_the_baselines(faces, key, brick):
     """§3.4 and §4 (Fig. 10): a young map (gravel, faint) coerced to an old one's statistics
-    (brick: other, oriented detail) lands within 5% of them per tile (median) and keeps its own
-    detail at the coarsest detail scale; Perlin noise and sharpening miss the statistics,
-    detail transfer loses the young detail."""
+    (brick: other, oriented detail) lands within 1% of them per tile (median) and keeps some of
+    its own detail at the coarsest detail scale; Perlin noise and sharpening miss the
+    statistics, detail transfer loses the young detail.
+
+    Reaching the statistics costs young structure: the paper's plain iteration gives a
+    coarsest-band correlation of 0.56 after 24 iterations (4.4% error) and 0.35 after 300
+    (0.7%); the defaults (accelerated iterations and polish, 0.6%) give about 0.25.
+    """
     images, _ = faces
     young = 0.3 * images[0]
     old = jnp.asarray(brick[:256, :256], jnp.float32)
     old_stats = detail.analyze(old, grid=8)
-    table = detail.compare_methods(key, young, old, old_stats, n_iter=24)
+    table = detail.compare_methods(key, young, old, old_stats)
     assert list(table) == list(detail.METHODS)
     ours = table["statistical"]
-    assert ours["stats_error"] < 0.05
+    assert ours["stats_error"] < 0.01
     for baseline in ("perlin", "sharpen"):
         assert table[baseline]["stats_error"] > 5 * ours["stats_error"]
-    assert table["transfer"]["keeps_coarse"] < 0.1 < 0.5 < ours["keeps_coarse"]
+    assert table["transfer"]["keeps_coarse"] < 0.1 < 0.2 < ours["keeps_coarse"]
 
 
 def test_perlin_baseline_reaches_the_detail_amplitude(faces, key, brick):

@@ -1,34 +1,17 @@
 """jface.mesh remeshing on real faces: round trip with known detail, correspondence between
-faces, a real head scan, the two ray casters, and bad input."""
+faces, the two ray casters, and bad input (the Lee Perry-Smith scan: tests/test_real_inputs.py)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import trimesh
-from conftest import SHARED_DATA
+from conftest import distance_to_mesh
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 
-from jface import io, mesh
+from jface import mesh
 
 INSIDE = (slice(26, -26), slice(26, -26))  # a 256² image without a 10% border
-
-
-def _shared(*parts: str):
-    """A file of the shared data beside the repository; the test is skipped without it."""
-    path = SHARED_DATA.joinpath(*parts)
-    if not path.exists():
-        pytest.skip(f"shared data not found: {'/'.join(parts)} (see ../shared/data/README)")
-    return path
-
-
-def _distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Distance from points to a triangle mesh (closest point over the 16 nearest triangles)."""
-    tri = vertices[faces]
-    _, cand = cKDTree(tri.mean(axis=1)).query(points, k=16)
-    q = trimesh.triangles.closest_point(tri[cand.ravel()], np.repeat(points, 16, axis=0))
-    return np.linalg.norm(q - np.repeat(points, 16, axis=0), axis=1).reshape(-1, 16).min(axis=1)
 
 
 @pytest.fixture(scope="module")
@@ -104,14 +87,14 @@ def test_redisplaced_mesh_is_close_to_scan(synthetic, remeshed):
     verts = np.asarray(detailed.vertices)
     scan_v, scan_f = np.asarray(synthetic.scan.vertices), np.asarray(synthetic.scan.faces)
     hit = ~np.asarray(remeshed.missed)  # rays that missed (the scan's border) were filled
-    to_scan = _distance_to_mesh(verts, scan_v, scan_f)
+    to_scan = distance_to_mesh(verts, scan_v, scan_f)
     # Scan → re-displaced mesh, over the part of the scan the marker mesh covers (nearest
     # re-displaced vertex at least 3% of the rectangle away from its border).
     _, nearest = cKDTree(verts).query(scan_v)
     uv = np.asarray(detailed.uv)[nearest]
     covered = np.minimum(uv, 1.0 - uv).min(axis=1) > 0.03
-    to_mesh = _distance_to_mesh(scan_v[covered], verts, np.asarray(detailed.faces))
-    base_gap = _distance_to_mesh(np.asarray(base.vertices), scan_v, scan_f)
+    to_mesh = distance_to_mesh(scan_v[covered], verts, np.asarray(detailed.faces))
+    base_gap = distance_to_mesh(np.asarray(base.vertices), scan_v, scan_f)
     mm = 10.0
     print(
         f"re-displaced→scan: max {to_scan[hit].max() * mm:.3f} mm over hit vertices "
@@ -179,17 +162,6 @@ def test_two_ict_identities_correspond_pixel_for_pixel(ict_model):
     spacing = mesh.mean_edge_length(neutral, faces)
     print(f"ICT correspondence: median {np.median(gap) * 10:.2f} mm, ICT edge {spacing * 10:.2f}")
     assert np.median(gap) < 2 * spacing and np.percentile(gap, 90) < 5 * spacing
-
-
-def test_lee_perry_smith_head_remeshes_without_nan(request):
-    head = io.read_mesh(_shared("meshes", "lee_perry_smith_head.obj"))
-    marks = io.read_landmarks(request.path.parent / "data" / "lee_perry_smith_landmarks.json")
-    result = mesh.remesh(head.vertices, head.faces, marks, image_size=128)
-    rates = np.asarray(result.hit_rate)
-    print(f"Lee Perry-Smith hit rates per level: {np.round(rates, 4)}")
-    for leaf in jax.tree.leaves(result):
-        assert np.all(np.isfinite(np.asarray(leaf)))
-    assert rates[-1] > 0.95 and rates.min() > 0.9
 
 
 @pytest.mark.usefixtures("unchecked")

@@ -69,12 +69,15 @@ class DetailStats(eqx.Module):
         ``16**-s`` of its variance back into the image, so this is the standard deviation that an
         image with these statistics has once its low-pass is removed.
         """
+        return jnp.sqrt(jnp.mean(self.tile_energy(), axis=(-2, -1)))
+
+    def tile_energy(self) -> Float[Array, "*batch grid grid"]:
+        """Per tile, the variance of the detail (the squared local :meth:`detail_rms`)."""
         weights = jnp.asarray(
             [1.0] + [16.0**-s for s in range(self.n_scales) for _ in range(self.n_orientations)],
             self.std.dtype,
         )
-        energy = jnp.mean(self.std**2, axis=(-2, -1))
-        return jnp.sqrt(jnp.sum(energy * weights, axis=-1))
+        return jnp.tensordot(weights, self.std**2, axes=((0,), (-3,)))
 
 
 def check_layout(grid: int, shape: tuple[int, int], n_scales: int) -> None:
@@ -185,13 +188,17 @@ def analyze(
         :class:`DetailStats` with ``std`` of shape ``(1 + n_scales * n_orientations, grid, grid)``.
 
     Raises:
-        TypeError, ValueError: bad image (see :func:`jface.pyramid.build`), grid not dividing the
-            band sizes, bad counts.
+        TypeError, ValueError: bad image (see :func:`jface.pyramid.build`), a constant image,
+            grid not dividing the band sizes, bad counts.
     """
     image = _checks.float_array(image, "image", ndim=2)
     grid, n_scales, n_orientations, bins = validate_layout(
         image.shape, grid, n_scales, n_orientations, bins, boundary
     )
+    if not _checks.is_traced(image) and float(jnp.ptp(image)) == 0.0:
+        raise ValueError(
+            f"image is constant (every pixel {float(image[0, 0]):g}): it has no detail to analyse"
+        )
     return _analyze(image, grid, n_scales, n_orientations, bins, boundary)
 
 

@@ -41,8 +41,9 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
 
     Args:
         path: the mesh file.
-        merge: merge vertices that share a position (texture seams of scans split them). UVs are
-            kept only when the file has exactly one per vertex after loading.
+        merge: merge vertices that share a position, texture and normal seams included (a scan
+            split along its UV seams has cracks that rays slip through). UVs are kept only when
+            every vertex then has exactly one.
 
     Returns:
         :class:`MeshData` (quads and polygons are triangulated by trimesh).
@@ -58,11 +59,13 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
     if not path.is_file():
         raise FileNotFoundError(f"no such mesh file: {path}")
     try:
-        loaded = trimesh.load(str(path), process=merge)
+        loaded = trimesh.load(str(path), process=False)
         if isinstance(loaded, trimesh.Scene):
             parts = list(loaded.geometry.values())
             meshes = [g for g in parts if isinstance(g, trimesh.Trimesh) and len(g.faces)]
             loaded = trimesh.util.concatenate(meshes) if meshes else (parts[0] if parts else None)
+        if merge and isinstance(loaded, trimesh.Trimesh) and np.isfinite(loaded.vertices).all():
+            _merge_positions(loaded)
     except Exception as err:  # trimesh raises many types for bad files
         raise ValueError(f"{path} is not a readable mesh (corrupt or truncated?): {err}") from err
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
@@ -84,6 +87,15 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
     if raw_uv is not None and len(raw_uv) == len(vertices):
         uv = np.asarray(raw_uv, dtype=np.float64)
     return MeshData(vertices, faces, uv)
+
+
+def _merge_positions(mesh) -> None:
+    """Merge a trimesh's vertices by position; drop its UVs if that merged different ones."""
+    split = mesh.copy()
+    split.merge_vertices()  # UV and normal seams kept apart
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)
+    if len(split.vertices) != len(mesh.vertices):
+        mesh.visual = type(mesh.visual)()  # seams: no single UV per vertex
 
 
 def write_mesh(

@@ -19,7 +19,7 @@ from jface.mesh._geometry import (
     sample_image,
     vertex_normals,
 )
-from jface.mesh._raycast import Hits, ScanIndex, cast, has_embree
+from jface.mesh._raycast import Hits, ScanIndex, cast, exterior, has_embree
 from jface.mesh._remesh import Mesh, Remeshed, displace, reconstruct, remesh
 from jface.mesh._subdivision import (
     Hierarchy,
@@ -68,6 +68,7 @@ __all__ = [
     "cast",
     "detail_field",
     "displace",
+    "exterior",
     "has_embree",
     "ict_landmarks",
     "image_sampler",

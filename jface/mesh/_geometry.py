@@ -43,6 +43,18 @@ def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(e, axis=-1)))
 
 
+def vertex_edge_length(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(V,)`` mean length of the edges at each vertex: the local scale of a mesh (0 for
+    vertices on no face)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    start, end = f.reshape(-1), np.roll(f, 1, axis=1).reshape(-1)
+    length = np.linalg.norm(v[start] - v[end], axis=-1)
+    total = np.bincount(start, length, len(v)) + np.bincount(end, length, len(v))
+    count = np.bincount(start, minlength=len(v)) + np.bincount(end, minlength=len(v))
+    return total / np.maximum(count, 1)
+
+
 class ImageSampler(eqx.Module):
     """Linear interpolation of per-vertex values at every pixel centre of an image: the
     precomputed map from a mesh laid out in the unit square to a displacement image.

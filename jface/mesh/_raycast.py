@@ -1,16 +1,23 @@
 """Projection along normals onto a scan: the nearest intersection of the line ``o + t·d`` with
 the scan's triangles, within ``|t| <= max_distance`` (host-side, numpy).
 
+Only the first surface met in each direction counts, and only if it faces the way ``d`` does
+(``facing=True``, the default for remeshing): from a point inside the scan the right surface is
+where the ray leaves it, from a point outside where the ray enters it, and in both cases the
+scan's outward normal agrees with ``d``. A sheet facing the other way (the inside of a lip, the
+neck seen from under the chin, the back of the head from inside it) is rejected, and so is
+anything behind it. The nearer of the two directions' accepted hits wins.
+
 Two casters give the same answer:
 
-- "embree": trimesh's Embree intersector (``embreex``), one ray forward and one backward per
-  vertex, the nearer hit kept; the few rays it misses (grazing the scan's border) are settled
-  by the exact caster below. Fast; used when installed.
+- "embree": trimesh's Embree intersector (``embreex``), the first hit forward and backward per
+  vertex; the few rays it misses (grazing the scan's border) are settled by the exact caster
+  below. Fast; used when installed.
 - "kdtree": bounded segments over a k-d tree of triangle centroids. A segment of half-length
   ``r`` around ``o`` can only meet triangles whose centroid lies within ``r + R`` of ``o``
   (``R`` = the largest centroid-to-corner distance), so candidates come from a radius query and
   are tested exactly (Möller–Trumbore) in vectorised chunks. ``r`` starts at one scan edge
-  length and grows ×4 only for the rays still without a hit, up to ``max_distance``. Exact, and
+  length and grows ×4 only for the rays still unsettled, up to ``max_distance``. Exact, and
   seconds rather than hours on half-million-triangle scans.
 """
 
@@ -47,6 +54,8 @@ class ScanIndex:
             self.method = "kdtree"
         tri = self.vertices[self.faces]
         self.triangles = tri
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        self.normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
         edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1)
         self.edge_length = float(edges.mean())
         from scipy.spatial import cKDTree
@@ -79,6 +88,65 @@ class ScanIndex:
             mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
             self._embree = RayMeshIntersector(mesh)
 
+    def subset(self, keep: np.ndarray) -> ScanIndex:
+        """The same scan restricted to the triangles of the mask ``keep``, normals oriented as
+        here."""
+        part = ScanIndex(self.vertices, self.faces[keep], self.method)
+        part.normals = self.normals[keep]
+        return part
+
+
+def exterior(
+    index: ScanIndex, candidates: np.ndarray, length: float, n_directions: int = 16
+) -> np.ndarray:
+    """Which triangles are seen from outside the scan: those from which at least one of
+    ``n_directions`` rays, spread over a cone of 85° around the triangle's outward normal, runs
+    ``length`` without meeting the scan.
+
+    The walls of closed pockets (an eye socket behind the lids, the inside of the nostrils or of
+    the mouth) fail the test: no ray from them gets out. Remeshing projects onto the exterior
+    triangles only, so a vertex that falls into such a pocket is carried to the skin in front of
+    it, not to the back of the pocket.
+
+    Args:
+        index: the scan, normals oriented outward (:class:`ScanIndex`).
+        candidates: ``(F,)`` mask of the triangles to test; the others count as exterior.
+        length: how far a ray must get; shorter hits occlude it.
+        n_directions: rays per triangle.
+
+    Returns:
+        ``(F,)`` boolean mask.
+    """
+    out = np.ones(len(index.faces), bool)
+    ids = np.flatnonzero(candidates)
+    if not len(ids):
+        return out
+    # A Fibonacci spiral over the cap, the normal itself first.
+    k = np.arange(n_directions)
+    cos_theta = 1.0 - k / max(n_directions - 1, 1) * (1.0 - np.cos(np.radians(85.0)))
+    phi = k * np.pi * (3.0 - np.sqrt(5.0))
+    sin_theta = np.sqrt(1.0 - cos_theta**2)
+    cap = np.stack([sin_theta * np.cos(phi), sin_theta * np.sin(phi), cos_theta], axis=1)
+    normal = index.normals[ids]
+    helper = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(normal, helper)
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+    v = np.cross(normal, u)
+    directions = cap[None, :, :1] * u[:, None] + cap[None, :, 1:2] * v[:, None]
+    directions = (directions + cap[None, :, 2:] * normal[:, None]).reshape(-1, 3)
+    # Start off the surface (farther than the casters' own start offset of 1e-3 edges), so the
+    # triangle does not occlude itself.
+    origins = index.centroids[ids] + 1e-2 * index.edge_length * normal
+    origins = np.repeat(origins, n_directions, axis=0)
+    reach = np.full(len(origins), float(length))
+    if index.method == "embree":
+        forward = _cast_embree(index, origins, directions).forward
+    else:
+        forward = _cast_kdtree(index, origins, directions, reach, facing=False).forward
+    escaped = ~(np.abs(forward) <= reach)
+    out[ids] = escaped.reshape(len(ids), n_directions).any(axis=1)
+    return out
+
 
 class Hits(NamedTuple):
     """Signed distances along the directions (0 where missed), the hit mask, and the scan
@@ -89,65 +157,108 @@ class Hits(NamedTuple):
     triangle: np.ndarray
 
 
-def cast(index: ScanIndex, origins, directions, max_distance: float) -> Hits:
+class _FirstHits(NamedTuple):
+    """The first triangle met in each direction (``t`` of +inf / -inf and -1 where none)."""
+
+    forward: np.ndarray
+    forward_triangle: np.ndarray
+    backward: np.ndarray
+    backward_triangle: np.ndarray
+
+
+def cast(index: ScanIndex, origins, directions, max_distance, *, facing: bool = True) -> Hits:
     """Nearest intersection along ``±directions`` from ``origins`` within ``max_distance``.
 
     Args:
         index: the scan (:class:`ScanIndex`).
         origins: ``(n, 3)`` ray origins.
         directions: ``(n, 3)`` unit directions (the sign of the result is along them).
-        max_distance: hits farther than this are misses.
+        max_distance: hits farther than this are misses; a number or one per ray ``(n,)``.
+        facing: keep only the first surface met in each direction, and only where the scan
+            faces the way of ``directions`` (see the module docstring); False takes the nearest
+            intersection of the line, whichever sheet it lies on.
     """
     origins = np.asarray(origins, dtype=np.float64)
     directions = np.asarray(directions, dtype=np.float64)
-    if index.method != "embree":
-        return _cast_kdtree(index, origins, directions, max_distance)
-    hits = _cast_embree(index, origins, directions, max_distance)
-    missed = np.flatnonzero(~hits.hit)
-    if len(missed):  # grazing rays (origins on the scan's border): settle them exactly
-        again = _cast_kdtree(index, origins[missed], directions[missed], max_distance)
-        for field, value in zip(hits, again, strict=True):
-            field[missed] = value
-    return hits
+    reach = np.broadcast_to(np.asarray(max_distance, dtype=np.float64), (len(origins),))
+    if index.method == "embree":
+        first = _cast_embree(index, origins, directions)
+        missed = np.flatnonzero(np.isinf(first.forward) & np.isinf(first.backward))
+        if len(missed):  # grazing rays (origins on the scan's border): settle them exactly
+            again = _cast_kdtree(index, origins[missed], directions[missed], reach[missed], facing)
+            for field, value in zip(first, again, strict=True):
+                field[missed] = value
+    else:
+        first = _cast_kdtree(index, origins, directions, reach, facing)
+    return _choose(index, first, directions, reach, facing)
 
 
-def _cast_embree(index: ScanIndex, o: np.ndarray, d: np.ndarray, max_distance: float) -> Hits:
-    n = len(o)
-    best = np.full(n, np.inf)
-    which = np.full(n, -1)
+def _choose(
+    index: ScanIndex, first: _FirstHits, d: np.ndarray, reach: np.ndarray, facing: bool
+) -> Hits:
+    """The nearer of the two directions' first hits that lie within reach (and face along d)."""
+    forward = _accepted(index, first.forward, first.forward_triangle, d, reach, facing)
+    backward = _accepted(index, first.backward, first.backward_triangle, d, reach, facing)
+    nearer = forward <= backward
+    hit = np.isfinite(np.minimum(forward, backward))
+    distance = np.where(nearer, first.forward, first.backward)
+    triangle = np.where(nearer, first.forward_triangle, first.backward_triangle)
+    return Hits(np.where(hit, distance, 0.0), hit, np.where(hit, triangle, -1))
+
+
+def _accepted(index: ScanIndex, t, triangle, d, reach, facing: bool) -> np.ndarray:
+    """``|t|`` of the hits that count (within reach, facing along ``d``), +inf for the others."""
+    ok = np.abs(t) <= reach
+    if facing:
+        ok &= np.einsum("ij,ij->i", index.normals[np.maximum(triangle, 0)], d) > 0.0
+    return np.where(ok, np.abs(t), np.inf)
+
+
+def _cast_embree(index: ScanIndex, o: np.ndarray, d: np.ndarray) -> _FirstHits:
     # Start each ray a little behind its origin, so a surface through the origin itself is hit.
     eps = 1e-3 * index.edge_length
+    out = []
     for sign in (1.0, -1.0):
+        t = np.full(len(o), sign * np.inf)
+        which = np.full(len(o), -1)
         tri, ray, loc = index._embree.intersects_id(
             o - eps * sign * d, sign * d, multiple_hits=False, return_locations=True
         )
-        t = np.einsum("ij,ij->i", loc - o[ray], d[ray])
-        closer = np.abs(t) < np.abs(best[ray])
-        best[ray[closer]] = t[closer]
-        which[ray[closer]] = tri[closer]
-    hit = np.abs(best) <= max_distance
-    return Hits(np.where(hit, best, 0.0), hit, np.where(hit, which, -1))
+        t[ray] = np.einsum("ij,ij->i", loc - o[ray], d[ray])
+        which[ray] = tri
+        out += [t, which]
+    return _FirstHits(*out)
 
 
-def _cast_kdtree(index: ScanIndex, o: np.ndarray, d: np.ndarray, max_distance: float) -> Hits:
-    best = np.full(len(o), np.inf)
-    which = np.full(len(o), -1)
+def _cast_kdtree(
+    index: ScanIndex, o: np.ndarray, d: np.ndarray, max_distance: np.ndarray, facing: bool
+) -> _FirstHits:
+    forward, backward = np.full(len(o), np.inf), np.full(len(o), -np.inf)
+    forward_tri, backward_tri = np.full(len(o), -1), np.full(len(o), -1)
     pending = np.arange(len(o))
-    reach = min(index.edge_length, max_distance)
+    reach = np.minimum(index.edge_length, max_distance)
     while len(pending):
-        _nearest_hits(index, o, d, pending, reach, best, which)
-        pending = pending[~np.isfinite(best[pending])]
-        if reach >= max_distance:
-            break
-        reach = min(4.0 * reach, max_distance)
-    hit = np.abs(best) <= max_distance
-    return Hits(np.where(hit, best, 0.0), hit, np.where(hit, which, -1))
+        found = (forward, forward_tri, backward, backward_tri)
+        _first_hits(index, o, d, pending, reach[pending], *found)
+        # Settled: a hit that counts (nothing met farther out could be nearer), both directions
+        # already blocked, or the reach exhausted.
+        p, r = pending, reach[pending]
+        counts = np.minimum(
+            _accepted(index, forward[p], forward_tri[p], d[p], r, facing),
+            _accepted(index, backward[p], backward_tri[p], d[p], r, facing),
+        )
+        open_ = np.isinf(counts) & (np.isinf(forward[p]) | np.isinf(backward[p]))
+        pending = p[open_ & (r < max_distance[p])]
+        reach[pending] = np.minimum(4.0 * reach[pending], max_distance[pending])
+    return _FirstHits(forward, forward_tri, backward, backward_tri)
 
 
-def _nearest_hits(
-    index: ScanIndex, o: np.ndarray, d: np.ndarray, rays: np.ndarray, reach: float, best, which
+def _first_hits(
+    index: ScanIndex, o, d, rays, reach, forward, forward_tri, backward, backward_tri
 ) -> None:
-    """Update ``best`` (and the triangles ``which``) with the nearest hits within ``reach``."""
+    """Update the first hits per direction of ``rays`` with intersections within ``reach``."""
+    bound = np.full(len(o), np.nan)
+    bound[rays] = reach
     for ids, tree, radius in index.groups:
         n_faces = len(ids)
         k = min(16, n_faces)
@@ -157,22 +268,27 @@ def _nearest_hits(
             step = max(1, (1 << 21) // k)
             for start in range(0, len(todo), step):
                 chunk = todo[start : start + step]
-                dist, cand = tree.query(
-                    o[chunk], k=k, distance_upper_bound=reach + radius, workers=-1
-                )
+                limit = float(bound[chunk].max()) + radius
+                dist, cand = tree.query(o[chunk], k=k, distance_upper_bound=limit, workers=-1)
                 dist, cand = dist.reshape(len(chunk), k), cand.reshape(len(chunk), k)
-                full = np.isfinite(dist[:, -1]) if k < n_faces else np.zeros(len(chunk), bool)
+                near = dist <= (bound[chunk] + radius)[:, None]
+                full = near[:, -1] if k < n_faces else np.zeros(len(chunk), bool)
                 overfull.append(chunk[full])  # maybe more candidates: again with a larger k
-                local, col = np.nonzero(np.isfinite(dist) & ~full[:, None])
+                local, col = np.nonzero(near & ~full[:, None])
                 r, f = chunk[local], ids[cand[local, col]]
                 t, ok = _intersect(o[r], d[r], index.v0[f], index.e1[f], index.e2[f])
-                ok &= np.abs(t) <= reach
+                ok &= np.abs(t) <= bound[r]
                 r, t, f = r[ok], t[ok], f[ok]
-                order = np.argsort(np.abs(t))[::-1]  # nearest last, so it wins the assignment
-                r, t, f = r[order], t[order], f[order]
-                closer = np.abs(t) < np.abs(best[r])
-                best[r[closer]] = t[closer]
-                which[r[closer]] = f[closer]
+                for side, which, closer in (
+                    (forward, forward_tri, t >= 0),
+                    (backward, backward_tri, t < 0),
+                ):
+                    rs, ts, fs = r[closer], t[closer], f[closer]
+                    order = np.argsort(np.abs(ts))[::-1]  # nearest last, so it wins
+                    rs, ts, fs = rs[order], ts[order], fs[order]
+                    better = np.abs(ts) < np.abs(side[rs])
+                    side[rs[better]] = ts[better]
+                    which[rs[better]] = fs[better]
             todo = np.concatenate(overfull)
             k = min(4 * k, n_faces)
 
@@ -201,23 +317,27 @@ def _intersect(o, d, v0, e1, e2) -> tuple[np.ndarray, np.ndarray]:
     q = _cross(s, e1)
     v = _dot(d, q) * inv
     t = _dot(e2, q) * inv
-    eps = 1e-9
+    # Triangles grown by 1e-4 of their size: a vertex snapped onto the scan's border and rounded
+    # to float32 (1e-7 relative) still meets the triangle it lies on.
+    eps = 1e-4
     ok &= (u >= -eps) & (v >= -eps) & (u + v <= 1.0 + eps)
     return t, ok
 
 
-def closest_points(index: ScanIndex, points) -> tuple[np.ndarray, np.ndarray]:
-    """Closest points on the scan to a few query points, and their distances (exact)."""
+def closest_points(index: ScanIndex, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest points on the scan to a few query points, their distances and the scan
+    triangles they lie on (exact)."""
     import trimesh
 
     points = np.asarray(points, dtype=np.float64)
     out = np.zeros_like(points)
     dist = np.zeros(len(points))
+    triangle = np.zeros(len(points), np.int64)
     _, nearest = index.tree.query(points)
     for i, p in enumerate(points):
         bound = np.linalg.norm(index.centroids[nearest[i]] - p) + 2 * index.radius
         cand = np.asarray(index.tree.query_ball_point(p, bound), dtype=np.int64)
         q = trimesh.triangles.closest_point(index.triangles[cand], np.repeat(p[None], len(cand), 0))
         j = np.argmin(np.linalg.norm(q - p, axis=1))
-        out[i], dist[i] = q[j], float(np.linalg.norm(q[j] - p))
-    return out, dist
+        out[i], dist[i], triangle[i] = q[j], float(np.linalg.norm(q[j] - p)), cand[j]
+    return out, dist, triangle

@@ -11,8 +11,13 @@
 4. Each base vertex is projected along the base normal onto the scan; the signed distance is the
    displacement, rasterised through the rectangle coordinates into the displacement image.
 
-Rays that miss the scan (holes, borders) are counted per level and filled with the value of the
-nearest vertex (in the rectangle) whose ray hit, so no NaN reaches an output.
+Real scans have several sheets along a normal (lips, eyelids, nostrils, ears, the neck under the
+chin). A projection takes the first surface met in each direction, only if it faces the way the
+mesh does, and only within a reach of ``search`` local edge lengths of the mesh being projected
+(:func:`jface.mesh.cast`), so every threshold scales with the scan: mm, cm and m scans remesh
+alike. Rays that miss (holes, borders, rejected sheets) are counted per level and filled with a
+membrane (harmonic) interpolation of the offsets that hit, over the mesh: smooth, with no steps
+at the rim of a hole. :attr:`Remeshed.filled` shows where the image was filled.
 """
 
 from __future__ import annotations
@@ -27,8 +32,13 @@ from jaxtyping import Array, Bool, Float, Int
 from tqdm.auto import tqdm
 
 from jface import _checks
-from jface.mesh._geometry import image_sampler, mean_edge_length, sample_image, vertex_normals
-from jface.mesh._raycast import Method, ScanIndex, cast, closest_points
+from jface.mesh._geometry import (
+    image_sampler,
+    sample_image,
+    vertex_edge_length,
+    vertex_normals,
+)
+from jface.mesh._raycast import Method, ScanIndex, cast, closest_points, exterior
 from jface.mesh._subdivision import Hierarchy, check_manifold, subdivide, template_hierarchy
 from jface.mesh._template import LANDMARK_NAMES, landmark_points
 
@@ -60,6 +70,8 @@ class Remeshed(eqx.Module):
         image: ``(H, W)`` the displacement image.
         hit_rate: per projected level and the base projection, the fraction of rays that hit.
         missed: ``(V_b,)`` base vertices whose ray missed (their displacement is filled).
+        filled: ``(H, W)`` how much of each pixel comes from filled base vertices (0: measured,
+            1: filled).
         schedule: ``(n_linear, n_loop, n_smooth)`` (static).
     """
 
@@ -71,6 +83,7 @@ class Remeshed(eqx.Module):
     image: Float[Array, "h w"]
     hit_rate: Float[Array, " k"]
     missed: Bool[Array, " b"]
+    filled: Float[Array, "h w"]
     schedule: tuple[int, int, int] = eqx.field(static=True)
 
     def hierarchy(self) -> Hierarchy:
@@ -95,20 +108,28 @@ def _scan_arrays(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
     return verts, tri.astype(np.int64)
 
 
-def _fill(values: np.ndarray, hit: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Give missed vertices the value of the nearest hit vertex in the rectangle."""
+def _fill(values: np.ndarray, hit: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Membrane fill: missed vertices take the harmonic interpolation (graph Laplacian of the
+    mesh's edges) of the values that hit, so a filled hole joins its rim without a step."""
     if hit.all():
         return values
-    if not hit.any():
-        raise ValueError(
-            "no normal ray met the scan: are the landmarks on the scan, and named left/right "
-            "from the subject's point of view?"
-        )
-    from scipy.spatial import cKDTree
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
 
-    _, nearest = cKDTree(uv[hit]).query(uv[~hit])
+    n = len(values)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    ones = np.ones(len(edges))
+    adjacency = sp.coo_matrix(
+        (np.concatenate([ones, ones]), (np.concatenate(edges.T[::-1]), np.concatenate(edges.T))),
+        shape=(n, n),
+    ).tocsr()
+    laplacian = sp.diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
+    miss = np.flatnonzero(~hit)
+    system = laplacian[miss][:, miss].tocsc()
+    rhs = adjacency[miss][:, np.flatnonzero(hit)] @ values[hit]
     out = values.copy()
-    out[~hit] = values[hit][nearest]
+    out[miss] = np.atleast_1d(spsolve(system, rhs))
     return out
 
 
@@ -149,7 +170,7 @@ def remesh(
         n_linear, n_loop: projected linear and Loop subdivisions (paper: 2 and 2).
         n_smooth: Loop subdivisions of the control mesh giving the base mesh (paper: 3).
         method: ray caster, "auto" (Embree when installed), "embree" or "kdtree".
-        search: projection reach, in mean edge lengths of the mesh being projected (the control
+        search: projection reach, in local edge lengths of the mesh being projected (the control
             mesh for the base projection); farther intersections count as misses.
         landmark_tolerance: largest allowed landmark distance from the scan, as a fraction of
             the scan's bounding-box diagonal.
@@ -174,8 +195,11 @@ def remesh(
     fit = _checks.integer(fit, "fit", low=0, high=10)
     hier = template_hierarchy(None, n_linear, n_loop, n_smooth)
     points = np.asarray(landmark_points(landmarks, verts), dtype=np.float64)
-    index = ScanIndex(verts, faces, method)
-    markers, dist = closest_points(index, points)
+    # Work in a frame centred on the scan: float32 positions keep their precision for scans
+    # placed far from their origin (millimetre scans in a scanner's frame).
+    centre = verts.mean(axis=0)
+    index = ScanIndex(verts - centre, faces, method)
+    markers, dist, triangles = closest_points(index, points - centre)
     diagonal = float(np.linalg.norm(verts.max(0) - verts.min(0)))
     far = np.flatnonzero(dist > tolerance * diagonal)
     if len(far):
@@ -184,18 +208,25 @@ def remesh(
             f"landmarks far from the scan surface (more than {tolerance:g} × the bounding-box "
             f"diagonal = {tolerance * diagonal:.3g}): {listing}"
         )
+    _check_face(markers, hier.levels[0])
+    _orient(index, markers, triangles, hier.levels[0].faces)
+    index = _skin(index, markers)
     steps = tqdm(total=hier.n_projected + 1 + fit, desc="remesh", disable=not progress)
     position = jnp.asarray(markers, dtype=jnp.float32)
     offsets, rates = [], []
     directions = position
-    for level in hier.levels[1 : hier.n_projected + 1]:
-        position, offset, hit, directions = _project(index, level.operator(position), level, search)
+    for k, level in enumerate(hier.levels[1 : hier.n_projected + 1], start=1):
+        position, offset, hit, directions = _project(
+            index, level.operator(position), level, search, f"level {k}"
+        )
         offsets.append(offset)
         rates.append(hit.mean())
         steps.update()
     control = position
     base_faces = jnp.asarray(hier.base.faces)
-    reach = search * mean_edge_length(np.asarray(control), hier.control.faces)
+    # The reach of the base projection: the control mesh's local scale, carried to the base.
+    scale = vertex_edge_length(np.asarray(control), hier.control.faces)
+    reach = search * np.asarray(_smooth(hier, jnp.asarray(scale[:, None], jnp.float32)))[:, 0]
     if fit and hier.n_projected and len(hier.levels) > hier.n_projected + 1:
         delta = _fit_control(index, hier, control, directions, reach, fit)
         control = control + delta[:, None] * directions
@@ -204,31 +235,103 @@ def remesh(
     base = _smooth(hier, control)
     normals = vertex_normals(base, base_faces)
     hits = cast(index, np.asarray(base), np.asarray(normals), reach)
-    displacement = _fill(hits.distance, hits.hit, np.asarray(hier.base.uv))
+    _check_coverage(hits.hit, "the base mesh")
+    displacement = _fill(hits.distance, hits.hit, np.asarray(hier.base.faces))
     rates.append(hits.hit.mean())
     steps.update()
     steps.close()
     displacement = jnp.asarray(displacement, dtype=jnp.float32)
-    image = image_sampler(np.asarray(hier.base.uv), hier.base.faces, shape)(displacement)
+    sampler = image_sampler(np.asarray(hier.base.uv), hier.base.faces, shape)
+    shift = jnp.asarray(centre, dtype=jnp.float32)
     return Remeshed(
-        markers=jnp.asarray(markers, dtype=jnp.float32),
+        markers=jnp.asarray(markers + centre, dtype=jnp.float32),
         offsets=tuple(offsets),
-        control=control,
-        base=Mesh(base, base_faces, hier.base.uv),
+        control=control + shift,
+        base=Mesh(base + shift, base_faces, hier.base.uv),
         displacement=displacement,
-        image=image,
+        image=sampler(displacement),
         hit_rate=jnp.asarray(rates, dtype=jnp.float32),
         missed=jnp.asarray(~hits.hit),
+        filled=sampler(jnp.asarray(~hits.hit, dtype=jnp.float32)),
         schedule=(n_linear, n_loop, n_smooth),
     )
 
 
-def _project(index: ScanIndex, position: Array, level, search: float):
+def _check_face(markers: np.ndarray, template) -> None:
+    """Raise ValueError unless the snapped landmarks are laid out like a face: the marker
+    triangles keep the orientation of the template's planar layout (seen along the mean marker
+    normal: 94–97% do on real faces, about half on a shuffled or random set), and the nose tip
+    stands out of the face along that normal (mirrored landmarks turn it inwards)."""
+    faces, uv = np.asarray(template.faces), np.asarray(template.uv, dtype=np.float64)
+    normal = np.asarray(vertex_normals(jnp.asarray(markers), jnp.asarray(faces))).sum(axis=0)
+    normal = normal / max(np.linalg.norm(normal), 1e-300)
+    flat = markers - markers.mean(axis=0)
+    flat = flat - np.outer(flat @ normal, normal)
+    first = np.linalg.svd(flat)[2][0]
+    plane = np.stack([flat @ first, flat @ np.cross(normal, first)], axis=1)
+
+    def signed_areas(p):
+        a, b, c = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
+        return (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+
+    agree = float(np.mean(np.sign(signed_areas(plane)) == np.sign(signed_areas(uv))))
+    if agree < 0.8:
+        raise ValueError(
+            f"the landmarks do not lie on the scan like a face: {1 - agree:.0%} of the marker "
+            "triangles are folded over (a face folds none or one or two); check that each name "
+            "marks the right feature"
+        )
+    names = LANDMARK_NAMES
+    around = [
+        names.index(k) for k in ("left_eye_inner", "right_eye_inner", "mouth_left", "mouth_right")
+    ]
+    nose = (markers[names.index("nose_tip")] - markers[around].mean(axis=0)) @ normal
+    size = float(np.linalg.norm(np.ptp(markers, axis=0)))
+    if nose < 0.03 * size:
+        raise ValueError(
+            "the nose tip does not stand out of the face the landmarks describe: are left and "
+            "right named from the subject's point of view, and is the scan a face?"
+        )
+
+
+def _orient(index: ScanIndex, markers: np.ndarray, triangles: np.ndarray, faces) -> None:
+    """Make the scan's triangle normals point out of the face, as the template's do: a scan
+    stored inside out (clockwise triangles) is recognised at the landmarks and flipped, so the
+    facing test of the projections holds for it too."""
+    template = np.asarray(vertex_normals(jnp.asarray(markers), jnp.asarray(faces)))
+    agree = np.einsum("ij,ij->i", template, index.normals[triangles])
+    if np.median(agree) < 0:
+        index.normals = -index.normals
+
+
+def _check_coverage(hit: np.ndarray, what: str) -> None:
+    """Raise ValueError when most normal rays of a level missed the scan (filling would invent
+    most of the face)."""
+    if hit.mean() < 0.5:
+        raise ValueError(
+            f"only {hit.mean():.0%} of the normal rays of {what} met the scan: it does not cover "
+            "the face the landmarks span (a partial scan, or landmarks off the face?)"
+        )
+
+
+def _skin(index: ScanIndex, markers: np.ndarray) -> ScanIndex:
+    """The scan without the walls of closed pockets around the face (see
+    :func:`jface.mesh.exterior`): rays tested over the face's radius, from the landmarks'
+    centre, within one and a half radii of it."""
+    centre = markers.mean(axis=0)
+    radius = float(np.linalg.norm(markers - centre, axis=1).max())
+    near = np.linalg.norm(index.centroids - centre, axis=1) < 1.5 * radius
+    outside = exterior(index, near, radius)
+    return index if outside.all() else index.subset(outside)
+
+
+def _project(index: ScanIndex, position: Array, level, search: float, what: str):
     """Move the vertices of a subdivided level along their normals onto the scan."""
     normals = vertex_normals(position, jnp.asarray(level.faces))
-    reach = search * mean_edge_length(np.asarray(position), level.faces)
+    reach = search * vertex_edge_length(np.asarray(position), level.faces)
     hits = cast(index, np.asarray(position), np.asarray(normals), reach)
-    offset = jnp.asarray(_fill(hits.distance, hits.hit, np.asarray(level.uv)), dtype=jnp.float32)
+    _check_coverage(hits.hit, what)
+    offset = jnp.asarray(_fill(hits.distance, hits.hit, np.asarray(level.faces)), jnp.float32)
     return position + offset[:, None] * normals, offset, hits.hit, normals
 
 
@@ -240,7 +343,7 @@ def _smooth(hier: Hierarchy, control: Array) -> Array:
 
 
 def _fit_control(
-    index: ScanIndex, hier: Hierarchy, control: Array, directions: Array, reach: float, n: int
+    index: ScanIndex, hier: Hierarchy, control: Array, directions: Array, reach, n: int
 ) -> Array:
     """Least-squares fit of the control mesh along its projection directions, so the base
     surface approximates the scan instead of interpolating it at the control vertices (the
