@@ -58,7 +58,9 @@ def test_writes_are_atomic_and_inputs_protected(tmp_path):
     assert target.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.exr"]  # no temporary left
     with pytest.raises(ValueError, match="refusing to overwrite the input"):
-        io.write_png(target, np.zeros((4, 4)), protect=(target,))
+        io.write_exr(target, np.zeros((4, 4), np.float32), protect=(target,))
+    with pytest.raises(ValueError, match=r"this output is PNG, so its name must end in \.png"):
+        io.write_png(tmp_path / "keep.exr.tmp", np.zeros((4, 4)))
 
 
 def test_png_round_trip_and_metadata(tmp_path):

@@ -10,11 +10,10 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from tqdm import tqdm
 
 from jface import faces, raster
 from jface.cli import _quilt as quilting
-from jface.io import load_arrays, provenance, read_image, write_png
+from jface.io import check_output, load_arrays, provenance, write_png
 
 
 def register(subparsers) -> None:
@@ -44,19 +43,6 @@ def register(subparsers) -> None:
     quilting.add_actions(sub, sample_name="synth")
 
 
-def _read_faces(paths: list[str]) -> np.ndarray:
-    images = []
-    for path in tqdm(paths, desc="reading images", unit="image", disable=len(paths) < 200):
-        img = read_image(path, grey=True)
-        if images and img.shape != images[0].shape:
-            raise ValueError(
-                f"all images must have one size: {paths[0]} is {images[0].shape}, "
-                f"{path} is {img.shape} (align and crop them first)"
-            )
-        images.append(img)
-    return np.stack(images)
-
-
 def _fit(data: np.ndarray, factors: int, components: int, iters: int, seed: int):
     if components == 1:
         return faces.fit_factor_analyser(data, factors, n_iter=iters)
@@ -64,7 +50,8 @@ def _fit(data: np.ndarray, factors: int, components: int, iters: int, seed: int)
 
 
 def _train(args: argparse.Namespace) -> None:
-    data = _read_faces(args.images)
+    check_output(args.out, (".npz",))
+    data, _ = quilting.read_faces(args.images, grey=True)
     start = time.perf_counter()
     result = _fit(data, args.factors, args.components, args.iters, args.seed)
     ll = np.asarray(result.log_likelihood)
@@ -76,7 +63,7 @@ def _train(args: argparse.Namespace) -> None:
         n_iter=int(result.n_iter),
         log_likelihood=float(ll[-1]),
     )
-    faces.save_model(args.out, result.model, meta, protect=tuple(args.images))
+    faces.save_model(args.out, result.model, meta)
     print(
         f"fitted {type(result.model).__name__} to {data.shape[0]} images of "
         f"{data.shape[1]}×{data.shape[2]} in {time.perf_counter() - start:.1f} s: "

@@ -108,7 +108,7 @@ def write_face(out: Path, face, meta: dict, fmt: str, protect=()) -> None:
 
 def _remesh(args: argparse.Namespace) -> None:
     scan = io.read_mesh(args.scan)
-    marks = io.read_landmarks(args.landmarks)
+    marks = io.read_landmarks(args.landmarks, n_vertices=len(scan.vertices))
     start = time.perf_counter()
     result = mesh.remesh(
         scan.vertices,

@@ -176,7 +176,22 @@ class WrinkleParams(eqx.Module):
         unknown = set(data) - set(_NAMES)
         if unknown:
             raise ValueError(f"unknown WrinkleParams field(s) {sorted(unknown)}; known: {_NAMES}")
-        return cls(**{name: np.asarray(value, dtype=np.float32) for name, value in data.items()})
+        values = {}
+        for name, value in data.items():
+            try:
+                values[name] = np.asarray(value, dtype=np.float64)
+            except OverflowError:  # an integer beyond any float: out of every range
+                lo, hi = PARAMETER_RANGES[name]
+                raise ValueError(
+                    f"WrinkleParams.{name} must be in [{lo}, {hi}] (Table 1), got a number "
+                    "too large for a float"
+                ) from None
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"WrinkleParams.{name} must be a number or a 2-D texture (rows of numbers, "
+                    f"all of one length), got {_checks.describe(value)}"
+                ) from None
+        return cls(**values)
 
 
 _NAMES = tuple(f.name for f in dataclasses.fields(WrinkleParams))
@@ -198,7 +213,11 @@ def load_params(path) -> list[WrinkleParams]:
     """
     from jface.io import read_json
 
-    return params_from_json(json.dumps(read_json(path)))
+    data = read_json(path)
+    try:
+        return params_from_json(json.dumps(data))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: {err}") from err
 
 
 def params_to_json(levels: WrinkleParams | list[WrinkleParams] | tuple[WrinkleParams, ...]) -> str:
