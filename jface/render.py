@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
@@ -51,7 +52,7 @@ def shade(
     azimuth: float = 315.0,
     n_octaves: int | None = None,
     contrast: float = 0.35,
-) -> np.ndarray:
+) -> jax.Array:
     """Exaggerated-shading relief of a height/displacement map, as grey values in [0, 1].
 
     Args:
@@ -63,7 +64,7 @@ def shade(
             robust scale, so fine pores and broad wrinkles both show.
 
     Returns:
-        ``(H, W)`` float32 image in [0, 1] (0.5 = flat).
+        ``(H, W)`` float32 image in [0, 1] (0.5 = flat); ``jax.jit`` and ``jax.vmap`` apply.
     """
     height = _checks.float_array(height, "height", ndim=2).astype(jnp.float32)
     if n_octaves is None:
@@ -83,7 +84,7 @@ def shade(
     gy, gx = jnp.gradient(finer)  # the broad form, lit gently
     slope = gx * light[0] + gy * light[1]
     shading = shading + 0.5 * jnp.tanh(slope / (jnp.quantile(jnp.abs(slope), 0.9) + 1e-12))
-    return np.asarray(jnp.clip(0.5 + contrast * shading, 0.0, 1.0))
+    return jnp.clip(0.5 + contrast * shading, 0.0, 1.0)
 
 
 def colormap(values: ArrayLike, low: float | None = None, high: float | None = None) -> np.ndarray:

@@ -59,13 +59,13 @@ PARAMETER_RANGES: dict[str, tuple[float, float]] = {
 
 
 def _as_param(x: Any) -> Array:
-    if isinstance(x, jax.Array | np.ndarray) and x.dtype.kind == "f":
-        return jnp.asarray(x, dtype=jnp.float32)
     if isinstance(x, bool) or not isinstance(
         x, int | float | np.integer | np.floating | list | tuple | jax.Array | np.ndarray
     ):
         raise TypeError(f"a WrinkleParams value must be a real number or a 2-D texture, got {x!r}")
-    return jnp.asarray(x, dtype=jnp.float32)
+    # eagerly even inside jit: a concrete value stays concrete and is checked against Table 1
+    with jax.ensure_compile_time_eval():
+        return jnp.asarray(x, dtype=jnp.float32)
 
 
 def _field(default: float):
@@ -143,7 +143,8 @@ class WrinkleParams(eqx.Module):
             if _checks.is_traced(value):
                 continue
             lo, hi = PARAMETER_RANGES[name]
-            vmin, vmax = float(np.min(value)), float(np.max(value))
+            values = np.asarray(value)  # numpy's reductions of a jax array would trace under jit
+            vmin, vmax = float(values.min()), float(values.max())
             # compare in float32, the values' precision (0.05 is stored as 0.0500000007)
             low, high = float(np.float32(lo)), float(np.float32(hi))
             if not (np.isfinite(vmin) and np.isfinite(vmax)) or vmin < low or vmax > high:
