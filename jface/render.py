@@ -67,6 +67,9 @@ def shade(
         ``(H, W)`` float32 image in [0, 1] (0.5 = flat); ``jax.jit`` and ``jax.vmap`` apply.
     """
     height = _checks.float_array(height, "height", ndim=2).astype(jnp.float32)
+    # the shading is scale-free (every band's slopes are normalised): scaling the map into ±1 by a
+    # power of two (exact) keeps huge finite values from overflowing float32
+    height = jnp.ldexp(height, -jnp.frexp(jnp.max(jnp.abs(height)))[1])
     if n_octaves is None:
         n_octaves = max(1, int(math.log2(max(min(height.shape) // 8, 2))))
     n_octaves = _checks.integer(n_octaves, "n_octaves", low=1)

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from jface import detail, io, mesh, render, wrinkles
 from jface.cli._detail import _parse_group
-from jface.cli._mesh import write_face
+from jface.cli._mesh import check_face_outputs, write_face
 from jface.detail._meshes import check_faces
 
 
@@ -100,8 +100,14 @@ def read_face(folder: str | Path) -> detail.Face:
     arrays, meta = io.load_arrays(folder / "hierarchy.npz", kind="MeshHierarchy")
     if "schedule" not in meta:
         raise ValueError(f"{folder / 'hierarchy.npz'} lacks the 'schedule' metadata field")
-    schedule = tuple(int(n) for n in meta["schedule"])
-    hierarchy = mesh.template_hierarchy(None, *schedule)
+    try:
+        schedule = tuple(int(n) for n in meta["schedule"])
+        hierarchy = mesh.template_hierarchy(None, *schedule)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise ValueError(
+            f"{folder / 'hierarchy.npz'} has an invalid 'schedule' (three subdivision counts): "
+            f"{err}"
+        ) from err
     names = ["markers"] + [f"offsets_{k + 1}" for k in range(hierarchy.n_projected)]
     missing = [name for name in names if name not in arrays]
     if missing:
@@ -162,15 +168,9 @@ def _tile_errors(image, target: detail.DetailStats) -> np.ndarray:
     return np.median(np.asarray(detail.stats_error(detail.analyze_like(image, target), target)), 0)
 
 
-def _check_face_outputs(folder: Path, fmt: str) -> None:
-    """Refuse, before any work, a face folder output that would replace an input face."""
-    for name in (f"base.{fmt}", "displacement.exr", "hierarchy.npz"):
-        io.check_output(folder / name)
-
-
 def _interpolate(args: argparse.Namespace) -> None:
     for name in ("average", "coerced"):
-        _check_face_outputs(Path(args.out) / name, args.format)
+        check_face_outputs(Path(args.out) / name, args.format)
     faces = [read_face(f) for f in tqdm(args.faces, desc="read faces", unit="face")]
     check_faces(faces)  # one layout, before their images are stacked
     if args.weights:
@@ -204,7 +204,7 @@ def _interpolate(args: argparse.Namespace) -> None:
 
 
 def _add_detail(args: argparse.Namespace) -> None:
-    _check_face_outputs(Path(args.out), args.format)
+    check_face_outputs(Path(args.out), args.format)
     face = read_face(args.face)
     target, source = _target(args, None)
     result = detail.add_detail(jax.random.key(args.seed), face, target, **_options(args))
@@ -226,7 +226,7 @@ def _add_detail(args: argparse.Namespace) -> None:
 
 def _age(args: argparse.Namespace) -> None:
     for name in ("aged", "detail_only"):
-        _check_face_outputs(Path(args.out) / name, args.format)
+        check_face_outputs(Path(args.out) / name, args.format)
     young, old = read_face(args.young), read_face(args.old)
     target, source = _target(args, old)
     meta = io.provenance(

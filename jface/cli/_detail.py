@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jface import detail, io, render
+from jface.detail._population import check_records
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -95,6 +96,9 @@ def _analyze(args: argparse.Namespace) -> None:
         "bins": args.bins,
         "boundary": args.boundary,
     }
+    for name in args.files:
+        io.check_output(out / (Path(name).stem + ".stats.npz"), (".npz",))
+        io.check_output(out / (Path(name).stem + ".stats.png"), (".png",))
     done = skipped = 0
     for name in tqdm(args.files, desc="analyze", unit="map", disable=len(args.files) < 2):
         target = out / (Path(name).stem + ".stats.npz")
@@ -158,7 +162,7 @@ def _synthesize(args: argparse.Namespace) -> None:
     print(json.dumps({"out": str(out), "median_tile_std_error": float(np.median(error))}))
 
 
-def _read_records(path: str) -> list[dict]:
+def _read_records(path: str, n_maps: int) -> list[dict]:
     try:
         data = io.read_json(path)
     except ValueError as err:
@@ -168,11 +172,17 @@ def _read_records(path: str) -> list[dict]:
             raise err from None
     if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
         raise ValueError(f"{path} must hold a JSON list of records (objects), one per map")
+    if len(data) != n_maps:
+        raise ValueError(f"{path} holds {len(data)} record(s) for {n_maps} map(s); one per map")
+    try:
+        check_records(data)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from err
     return data
 
 
 def _db_build(args: argparse.Namespace) -> None:
-    records = _read_records(args.metadata) if args.metadata else None
+    records = _read_records(args.metadata, len(args.files)) if args.metadata else None
     population = detail.build_database(
         args.files,
         args.out,

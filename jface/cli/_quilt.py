@@ -190,9 +190,18 @@ def _settings(args: argparse.Namespace) -> dict:
 # --- commands -------------------------------------------------------------------------------------
 
 
+def _check_outputs(out: Path, names) -> None:
+    """Refuse, before any work, outputs that would replace an input (a training face, say)."""
+    for name in names:
+        io.check_output(out / name, (".png", ".json"))
+
+
 def _sample(args: argparse.Namespace) -> None:
     if args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
+    faces_out = [f"face_{i:03d}.png" for i in range(args.n)]
+    extra = ("faces.png", "targets.png", "quilted.png", "sources.png", "summary.json")
+    _check_outputs(Path(args.out), [*faces_out, *extra])
     images, files = read_faces(args.images, args.grey)
     library = _library(args, images)
     key_target, key_quilt = jax.random.split(jax.random.key(args.seed))
@@ -284,6 +293,8 @@ def _one_face(path: str, images: np.ndarray, grey: bool, name: str) -> np.ndarra
 def _inpaint(args: argparse.Namespace) -> None:
     if args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
+    names = [f"inpainted_{i:03d}.png" for i in range(args.n)]
+    _check_outputs(Path(args.out), [*names, "inpainting.png"])
     images, files = read_faces(args.images, args.grey)
     face = _one_face(args.image, images, args.grey, "--image")
     mask = _read_mask(args.mask, face.shape[:2])
@@ -319,6 +330,7 @@ def _inpaint(args: argparse.Namespace) -> None:
 
 
 def _edit(args: argparse.Namespace) -> None:
+    _check_outputs(Path(args.out), ("edited.png", "edit.png"))
     images, _ = read_faces(args.images, args.grey)
     face = _one_face(args.image, images, args.grey, "--image")
     painted = _one_face(args.painted, images, args.grey, "--painted")
@@ -341,6 +353,7 @@ def _edit(args: argparse.Namespace) -> None:
 
 
 def _restyle(args: argparse.Namespace) -> None:
+    _check_outputs(Path(args.out), ("restyled.png", "restyle.png"))
     images, _ = read_faces(args.images, args.grey)
     face = _one_face(args.image, images, args.grey, "--image")
     mask = _read_mask(args.mask, face.shape[:2]) if args.mask else None

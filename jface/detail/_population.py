@@ -118,7 +118,11 @@ class Population:
         arrays, meta = io.load_arrays(path, kind="Population")
         if not isinstance(meta.get("records"), list):
             raise ValueError(f"{path} holds a malformed Population: no records")
-        return cls(stats_from_arrays(arrays, meta, path), tuple(meta["records"]))
+        stats = stats_from_arrays(arrays, meta, path)
+        try:
+            return cls(stats, tuple(meta["records"]))
+        except ValueError as err:
+            raise ValueError(f"{path} holds a malformed Population: {err}") from err
 
     def table(self) -> str:
         """One JSON line per face: its record and its mean std per band (for quick looks)."""

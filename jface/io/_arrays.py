@@ -52,7 +52,8 @@ def load_arrays(path: str | os.PathLike, *, kind: str) -> tuple[dict[str, np.nda
     """
     path = input_file(path, "file")
     try:
-        with np.load(path, allow_pickle=False) as data:
+        # our own handle: numpy leaves the file open when it fails to read a bad archive
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
     except MemoryError as err:
         raise ValueError(f"{path} declares arrays larger than memory (corrupt?): {err}") from err

@@ -147,7 +147,6 @@ def exr_rows(
         ValueError: bad shape or compression, a band of the wrong width, more rows than ``H``,
             or fewer than ``H`` rows written when the block ends.
     """
-    path = check_output(path, (".exr",), protect=protect)
     if compression not in _CLASSIC_COMPRESSION:
         raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}")
     if not (
@@ -156,6 +155,7 @@ def exr_rows(
         and all(isinstance(n, int | np.integer) and n > 0 for n in shape)
     ):
         raise ValueError(f"shape must be two positive integers (H, W), got {shape!r}")
+    path = check_output(path, (".exr",), protect=protect)
     h, w = int(shape[0]), int(shape[1])
     header = OpenEXR.Header(w, h)
     header["channels"] = {"Y": Imath.Channel(Imath.PixelType(Imath.PixelType.FLOAT))}
@@ -219,6 +219,11 @@ def read_exr(path: str | os.PathLike) -> ExrImage:
     return ExrImage(channels, metadata)
 
 
+#: The largest magnitude :func:`read_map` accepts: sums of squares over a 16384² map stay
+#: finite in float32 (a kilometre in nanometres; no displacement map comes near).
+MAP_LIMIT = 1e12
+
+
 def read_map(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
     """Read one single-channel map ``(H, W)`` float32: an EXR channel, a ``.npy`` array, or a
     greyscale PNG/JPEG/TIFF in [0, 1].
@@ -231,7 +236,8 @@ def read_map(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
         FileNotFoundError: no such file.
         TypeError: a ``.npy`` array that is not floating point.
         ValueError: several channels and none named, an unknown channel, not 2-D, NaN or
-            infinite values, or a bad file; the message names the file.
+            infinite values or values beyond ±:data:`MAP_LIMIT`, or a bad file; the message
+            names the file.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -256,6 +262,12 @@ def read_map(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
     bad = int(np.count_nonzero(~np.isfinite(data)))
     if bad:
         raise ValueError(f"{path} holds {bad} NaN or infinite value(s); a map must be finite")
+    largest = float(np.max(np.abs(data)))
+    if largest > MAP_LIMIT:
+        raise ValueError(
+            f"{path} holds values up to {largest:.3g}; a map must lie within ±{MAP_LIMIT:g} "
+            "(float32 statistics of larger values overflow)"
+        )
     return data
 
 

@@ -3,8 +3,8 @@
 Every writer of :mod:`jface.io` goes through :func:`atomic_path`: the bytes go to a temporary file
 beside the target (``.NAME~jface-HOST-PID-XXXXXXXX.EXT``), which is renamed onto the target only
 when the writing succeeded, and removed on every other exit. A killed process cannot clean up, so
-each process removes, once per folder it writes to, the temporaries of dead jface processes of
-its own host.
+a write removes the temporaries that dead jface processes of its host left in the target's
+folder (once per folder in a session).
 
 Within a :func:`session` (the ``jface`` command opens one per run) writes are also checked
 against the command's inputs: a path that is an input, resolves to one or is a hard link of one
@@ -32,13 +32,13 @@ from pathlib import Path
 
 _HOST = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:6]
 _TEMPORARY = re.compile(r"^\..*~jface-(?P<host>[0-9a-f]{6})-(?P<pid>\d+)-[a-z0-9_]{8}(\.[^.]*)?$")
-_cleaned: set[str] = set()  # folders already swept by this process
 
 
 @dataclasses.dataclass
 class _Session:
     inputs: dict[tuple[int, int], str] = dataclasses.field(default_factory=dict)
     claimed: set[str] = dataclasses.field(default_factory=set)
+    swept: set[str] = dataclasses.field(default_factory=set)  # folders cleared of dead temporaries
     staged: list[tuple[Path, Path]] = dataclasses.field(default_factory=list)
     tracking: bool = True
 
@@ -50,8 +50,8 @@ class _Session:
         for i, (tmp, path) in enumerate(staged):
             try:
                 _replace(tmp, path)
-            except BaseException:
-                _remove(tmp for tmp, _ in staged[i + 1 :])
+            except BaseException:  # an interrupt too: no temporary may stay behind
+                _remove(tmp for tmp, _ in staged[i:])
                 raise
 
     def discard(self) -> None:
@@ -166,9 +166,9 @@ def check_output(
     protect: Iterable[str | os.PathLike] = (),
 ) -> Path:
     """Raise unless ``path`` can be an output: a name ending in one of ``suffixes`` (when
-    given; the format follows the name), not a folder, and not an input of the current
-    :func:`session` or one of ``protect`` (the same file under any name: a link, a hard link).
-    Commands call it before they compute, so a bad output name costs nothing."""
+    given; the format follows the name), not a folder, not below a file, and not an input of the
+    current :func:`session` or one of ``protect`` (the same file under any name: a link, a hard
+    link). Commands call it before they compute, so a bad output name costs nothing."""
     path = Path(path)
     if suffixes and path.suffix.lower() not in suffixes:
         raise ValueError(
@@ -177,6 +177,11 @@ def check_output(
         )
     if path.is_dir():
         raise IsADirectoryError(errno.EISDIR, f"cannot write {path}: it is a folder; name a file")
+    blocker = next((p for p in path.parents if p.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        raise NotADirectoryError(
+            errno.ENOTDIR, f"cannot write {path}: {blocker} is a file, not a folder"
+        )
     current = _active.get()
     inputs = dict(current.inputs) if current is not None else {}
     for other in protect:
@@ -218,12 +223,14 @@ def _cannot_write(path: Path, err: OSError) -> OSError:
     return type(err)(err.errno, f"cannot write {path}: {reason}")
 
 
-def _sweep(folder: Path) -> None:
-    """Remove the temporaries that dead jface processes of this host left in ``folder``."""
-    key = os.path.realpath(folder)
-    if key in _cleaned:
-        return
-    _cleaned.add(key)
+def _sweep(folder: Path, current: _Session | None) -> None:
+    """Remove the temporaries that dead jface processes of this host left in ``folder`` (once
+    per session and folder)."""
+    if current is not None:
+        key = os.path.realpath(folder)
+        if key in current.swept:
+            return
+        current.swept.add(key)
     with contextlib.suppress(OSError), os.scandir(folder) as entries:
         for entry in entries:
             match = _TEMPORARY.match(entry.name)
@@ -277,7 +284,7 @@ def atomic_path(
     _claim(path, current)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        _sweep(path.parent)
+        _sweep(path.parent, current)
         prefix = f".{path.name[:100]}~jface-{_HOST}-{os.getpid()}-"
         fd, name = tempfile.mkstemp(prefix=prefix, suffix=path.suffix[:20], dir=path.parent)
     except OSError as err:

@@ -13,6 +13,7 @@ import json
 import math
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -73,9 +74,15 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
         if part_vertices.ndim == 2 and len(part_vertices):
             _check_finite(path, "vertex", part_vertices)
     meshes = [g for g in parts if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+    for part in meshes:  # before processing, which indexes the vertices with them
+        if part.faces.min() < 0 or part.faces.max() >= len(part.vertices):
+            raise ValueError(f"{path}: faces index vertices outside [0, {len(part.vertices)})")
     if merge:
-        for part in meshes:
-            part.process()
+        try:
+            for part in meshes:
+                part.process()
+        except Exception as err:  # trimesh's processing of a malformed mesh
+            raise ValueError(f"{path} is not a valid mesh: {err}") from err
     if len(meshes) > 1:
         loaded = trimesh.util.concatenate(meshes)
     else:
@@ -222,7 +229,10 @@ def _write_ply(path: Path, vertices, faces, uv, comment: str) -> None:
 
 
 def read_landmarks(
-    path: str | os.PathLike, *, n_vertices: int | None = None
+    path: str | os.PathLike,
+    *,
+    n_vertices: int | None = None,
+    names: Sequence[str] | None = None,
 ) -> dict[str, Landmark]:
     """Read named landmarks from JSON or CSV.
 
@@ -234,6 +244,8 @@ def read_landmarks(
     Args:
         path: the file.
         n_vertices: the scan's vertex count, when known: ids must lie below it.
+        names: the landmark names expected (e.g. :data:`jface.mesh.LANDMARK_NAMES`), when
+            known: the file must name exactly these.
 
     Returns:
         name → vertex id (int) or point (3 floats), in file order.
@@ -242,9 +254,8 @@ def read_landmarks(
         FileNotFoundError: no such file.
         ValueError: unreadable file, duplicate names, or a value that is neither an id (a
             non-negative integer below ``n_vertices``, or below 2³¹) nor a 3-D point of finite
-            float32 coordinates; the message names the file and the landmark. (Missing and
-            unknown names are checked against the template by
-            :func:`jface.mesh.landmark_points`.)
+            float32 coordinates, or (with ``names``) missing or unknown names; the message
+            names the file and the landmark.
     """
     path = input_file(path, "landmark file")
     try:
@@ -264,6 +275,14 @@ def read_landmarks(
         raise ValueError(f"{path}: duplicate landmark name(s) {sorted(set(duplicates))}")
     if not seen:
         raise ValueError(f"{path} holds no landmarks")
+    if names is not None:
+        missing = [n for n in names if n not in seen]
+        unknown = [n for n in seen if n not in names]
+        if missing or unknown:
+            raise ValueError(
+                f"{path} must name exactly the {len(names)} landmarks {list(names)}; "
+                f"missing {missing}, unknown {unknown}"
+            )
     return seen
 
 

@@ -65,7 +65,13 @@ def _as_param(x: Any) -> Array:
         raise TypeError(f"a WrinkleParams value must be a real number or a 2-D texture, got {x!r}")
     # eagerly even inside jit: a concrete value stays concrete and is checked against Table 1
     with jax.ensure_compile_time_eval():
-        return jnp.asarray(x, dtype=jnp.float32)
+        if isinstance(x, jax.Array):
+            return jnp.asarray(x, dtype=jnp.float32)
+        try:
+            with np.errstate(over="ignore"):  # beyond float32: ±inf, refused by the range check
+                return jnp.asarray(np.asarray(x, dtype=np.float32))
+        except OverflowError:  # a Python integer beyond any float
+            raise ValueError("a WrinkleParams value must be within float32's range") from None
 
 
 def _field(default: float):
