@@ -267,6 +267,10 @@ def test_wrong_shapes_non_finite_and_huge_values(files, tmp_path, capsys):
     nan_map[3, 4] = np.inf
     io.write_exr(d / "nan.exr", nan_map)
     io.write_exr(d / "huge.exr", noise() * 1e30)
+    window = bytearray(io.write_exr(d / "window.exr", noise(8), compression="none").read_bytes())
+    at = window.index(b"dataWindow\0box2i\0") + len(b"dataWindow\0box2i\0") + 4
+    window[at : at + 16] = np.array([0, 0, 2**31 - 2, 2**31 - 2], "<i4").tobytes()
+    (d / "window.exr").write_bytes(bytes(window))  # declares 2³¹ × 2³¹ pixels
     _bomb_png(d / "bomb.png", 30000)
     tetrahedron(d / "nan.obj", "v nan nan nan\nv 0 0 0")
     (d / "huge.ply").write_bytes(
@@ -337,6 +341,8 @@ def test_wrong_shapes_non_finite_and_huge_values(files, tmp_path, capsys):
         (["analyze", d / "rgb.exr", "--out", out], "rgb.exr"),
         (["analyze", d / "nan.exr", "--out", out], "nan.exr"),
         (["analyze", d / "huge.exr", "--out", out], "huge.exr"),
+        (["analyze", d / "window.exr", "--out", out], "window.exr"),
+        (["db", "build", d / "window.exr", "--out", out / "db.npz"], "window.exr"),
         (["analyze", d / "bomb.png", "--out", out], "bomb.png"),
         (["displace", d / "nan.obj", f["m"], "--out", out / "o.obj"], "nan.obj"),
         (["displace", d / "huge.ply", f["m"], "--out", out / "o.obj"], "huge.ply"),
@@ -541,3 +547,31 @@ def test_killed_command_leaves_no_output_and_next_run_sweeps(files, tmp_path, ho
         assert main(argv) == 0  # ... the next run writing there removes the dead one's file
         assert sorted(set(snapshot(tmp_path)) - set(before)) == ["shaded.png"]
     assert snapshot(tmp_path).items() >= before.items()  # inputs unchanged
+
+
+def test_same_seed_same_bytes(files, tmp_path):
+    """A command run twice with the same inputs and seed writes identical files."""
+    f = files
+    shutil.copy(f["png"], tmp_path / "n.png")
+    (tmp_path / "levels.json").write_text(
+        '{"kind": "WrinkleParams", "levels": [{"d": 0.05, "theta": 0.5}]}'
+    )
+    commands = [
+        ["synthesize", f["m"], "--stats", f["stats"], "--out", "{out}/s.exr", "--seed", "3",
+         "--n-iter", "2"],
+        ["analyze", f["m"], tmp_path / "n.png", "--out", "{out}/stats", "--grid", "4",
+         "--scales", "2"],
+        ["db", "build", f["m"], f["png"], "--out", "{out}/db.npz", "--grid", "4", "--scales",
+         "2"],
+        ["wrinkles", "render", "--params", tmp_path / "levels.json", "--out", "{out}/w.exr",
+         "--size", "64", "--steps", "5", "--seed", "2"],
+        ["faces", "sample", f["model"], "--n", "3", "--seed", "1", "--out", "{out}"],
+    ]  # fmt: skip
+    runs = []
+    for name in ("first", "second"):
+        out = tmp_path / name
+        for argv in commands:
+            assert main([str(a).replace("{out}", str(out)) for a in argv]) == 0
+        runs.append(snapshot(out))
+    assert runs[0] == runs[1]
+    assert len(runs[0]) == 13  # EXR + PNG, 2 × (npz + PNG), npz, EXR + PNG, 3 + 1 PNGs

@@ -86,7 +86,6 @@ def grid(images: np.ndarray, pad: int = 1) -> np.ndarray:
 
 
 def _write_samples(out: Path, images: np.ndarray, meta: dict, *, scale: int = 1) -> Path:
-    out.mkdir(parents=True, exist_ok=True)
     images = np.clip(images, 0.0, 1.0)
     for i, img in enumerate(images):
         write_png(out / f"sample_{i:03d}.png", img, metadata=meta)
@@ -135,7 +134,6 @@ def demo(out_dir: Path, seed: int) -> None:
     data = face_renders(seed, 120)
     result = faces.fit_factor_analyser(data, 8)
     meta = provenance(seed=seed, step="faces demo", n_images=120, n_factors=8)
-    out.mkdir(parents=True, exist_ok=True)
     faces.save_model(out / "face_model.npz", result.model, meta)
     write_png(out / "training_grid.png", np.kron(grid(np.clip(data[:16], 0, 1)), np.ones((4, 4))))
     images = np.asarray(faces.sample(jax.random.key(seed), result.model, 16))

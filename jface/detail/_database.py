@@ -3,6 +3,7 @@ devices, with progress, and resumable (a crash keeps every finished chunk)."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 from collections.abc import Sequence
@@ -162,7 +163,8 @@ def build_database(
         io.commit()
         for part in parts.glob("*.npz"):
             part.unlink()
-        parts.rmdir()
+        with contextlib.suppress(OSError):  # a folder the user put other files in stays
+            parts.rmdir()
     return population
 
 

@@ -213,14 +213,7 @@ def _claim(path: Path, current: _Session | None) -> None:
 
 def _cannot_write(path: Path, err: OSError) -> OSError:
     """The OS error of writing ``path``, naming ``path`` (not a temporary) and the problem."""
-    reason = err.strerror or str(err)
-    if isinstance(err, FileExistsError | NotADirectoryError):
-        blocker = next((p for p in path.parents if p.exists()), None)
-        if blocker is not None and not blocker.is_dir():
-            return NotADirectoryError(
-                errno.ENOTDIR, f"cannot write {path}: {blocker} is a file, not a folder"
-            )
-    return type(err)(err.errno, f"cannot write {path}: {reason}")
+    return type(err)(err.errno, f"cannot write {path}: {err.strerror or err}")
 
 
 def _sweep(folder: Path, current: _Session | None) -> None:
