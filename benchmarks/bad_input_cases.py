@@ -10,6 +10,8 @@ results). Runs on any version of jface (it uses only the command line and public
 the same script measures before and after a change.
 
 Run: ``python benchmarks/bad_input_cases.py [--only NAME]`` (about a minute on 2 CPU cores).
+Measured on 2 CPU cores: 6 of the 49 cases as asked on the commit before the fix (f525ce4), 49
+of 49 after.
 """
 
 from __future__ import annotations

@@ -165,11 +165,11 @@ def _synthesize(args: argparse.Namespace) -> None:
 def _read_records(path: str, n_maps: int) -> list[dict]:
     try:
         data = io.read_json(path)
-    except ValueError as err:
+    except ValueError as whole:
         try:  # not one JSON document: JSON lines, one record per line
             data = io.read_json(path, lines=True)
-        except ValueError:
-            raise err from None
+        except ValueError as lines:  # "extra data" after a first document: meant as lines
+            raise (lines if "Extra data" in str(whole) else whole) from None
     if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
         raise ValueError(f"{path} must hold a JSON list of records (objects), one per map")
     if len(data) != n_maps:

@@ -3,6 +3,7 @@ devices, with progress, and resumable (a crash keeps every finished chunk)."""
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import os
@@ -172,9 +173,8 @@ def _labels(sources: Sequence[Path]) -> list[str]:
     """A short unique name per map: its stem, with as many parent folders as tell it apart
     (compared without case), else its whole path."""
     resolved = [os.path.realpath(s) for s in sources]
-    twice = sorted(
-        {str(s) for s, r in zip(sources, resolved, strict=True) if resolved.count(r) > 1}
-    )
+    counts = collections.Counter(resolved)
+    twice = sorted({str(s) for s, r in zip(sources, resolved, strict=True) if counts[r] > 1})
     if twice:
         raise ValueError(f"each map must be given once; given more than once: {twice[:5]}")
     stems = [PurePosixPath(*Path(r).with_suffix("").parts) for r in resolved]
@@ -182,9 +182,9 @@ def _labels(sources: Sequence[Path]) -> list[str]:
     pending = list(range(len(stems)))
     for depth in range(1, max(len(s.parts) for s in stems) + 1):
         names = {i: str(PurePosixPath(*stems[i].parts[-depth:])) for i in pending}
-        taken = [n.casefold() for n in names.values()] + [n.casefold() for n in labels if n]
+        taken = collections.Counter(n.casefold() for n in [*names.values(), *filter(None, labels)])
         for i, name in names.items():
-            if taken.count(name.casefold()) == 1:
+            if taken[name.casefold()] == 1:
                 labels[i] = name
         pending = [i for i in pending if labels[i] is None]
     return [label or resolved[i] for i, label in enumerate(labels)]

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jface._checks import is_traced as _is_traced
+from jface import _checks
 from jface.faces._fa import chol_solve, log_det_chol
 
 
@@ -341,7 +341,7 @@ def noise_floor_value(variance: Array, noise_floor: float, name: str = "data") -
     under ``jax.jit``/``jax.vmap`` tracing with an error when the compiled fit runs
     (``equinox.error_if``); the warning needs concrete data.
     """
-    if _is_traced(variance):
+    if _checks.is_traced(variance):
         mean_var = jnp.mean(variance)
         floor = eqx.error_if(
             noise_floor * mean_var,
