@@ -86,7 +86,8 @@ def main() -> None:
         f"| {m} | {s['stats_error']:.1%} | {s['keeps_coarse']:.2f} | {s['keeps_mid']:.2f} |"
         for m, s in scores.items()
     ]
-    (out / "comparison.md").write_text("\n".join(lines) + "\n")
+    with io.atomic_path(out / "comparison.md") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     io.write_json(out / "comparison.json", {**meta, "methods": scores})
     print("\n".join(lines))
     gap = float(jnp.abs(aged.base.vertices - young.base.vertices).max())

@@ -3,7 +3,8 @@
 Every public function checks its arguments here before anything reaches a jitted kernel, and
 raises ``ValueError``/``TypeError`` with a message that names the argument, what was expected
 and what came. Checks that need concrete values (finiteness) are skipped for traced arrays, so
-the same entry points stay usable under ``jax.jit`` and ``jax.vmap``.
+the same entry points stay usable under ``jax.jit`` and ``jax.vmap``; values closed over by a
+jitted function are concrete and are checked.
 """
 
 from __future__ import annotations
@@ -62,11 +63,14 @@ def float_array(
             f"{name} must have a floating-point dtype (float32 or float64), got {describe(x)}; "
             "convert it explicitly, e.g. image.astype(np.float32) / 255"
         )
-    arr = x if isinstance(x, jax.Array) else jnp.asarray(x)
-    if dtype is not None:
-        arr = arr.astype(dtype)
-    elif arr.dtype not in (jnp.float32, jnp.float64):
-        arr = arr.astype(jnp.float32)
+    # Converted eagerly even inside jit: a concrete input (a closed-over array, a Python number)
+    # stays concrete, so it is checked and its values may size what follows.
+    with jax.ensure_compile_time_eval():
+        arr = x if isinstance(x, jax.Array) else jnp.asarray(x)
+        if dtype is not None:
+            arr = arr.astype(dtype)
+        elif arr.dtype not in (jnp.float32, jnp.float64):
+            arr = arr.astype(jnp.float32)
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} axes, got {describe(arr)}")
     if arr.ndim < min_ndim:

@@ -405,6 +405,13 @@ def test_cli_train_and_sample(tmp_path, monkeypatch, lfw, capsys):
     assert len(list(out.glob("sample_*.png"))) == 5
     assert read_image(out / "grid.png").shape == (2 * 26 + 1, 3 * 26 + 1)  # 3 columns, 2 rows
     write_png(tmp_path / "small.png", lfw[0, :20, :20])
-    bad = ["faces", "train", paths[0], str(tmp_path / "small.png"), "--out", str(tmp_path / "x")]
+    bad = [
+        "faces",
+        "train",
+        paths[0],
+        str(tmp_path / "small.png"),
+        "--out",
+        str(tmp_path / "x.npz"),
+    ]
     assert jface.cli.main(bad) == 2
-    assert "all images must have one size" in capsys.readouterr().err
+    assert "small.png is (20, 20)" in capsys.readouterr().err

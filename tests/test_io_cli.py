@@ -58,7 +58,9 @@ def test_writes_are_atomic_and_inputs_protected(tmp_path):
     assert target.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.exr"]  # no temporary left
     with pytest.raises(ValueError, match="refusing to overwrite the input"):
-        io.write_png(target, np.zeros((4, 4)), protect=(target,))
+        io.write_exr(target, np.zeros((4, 4), np.float32), protect=(target,))
+    with pytest.raises(ValueError, match=r"this output is PNG, so its name must end in \.png"):
+        io.write_png(tmp_path / "keep.exr.tmp", np.zeros((4, 4)))
 
 
 def test_png_round_trip_and_metadata(tmp_path):
@@ -76,6 +78,8 @@ def test_shade_shows_relief():
     assert image.shape == (128, 128) and image.min() >= 0 and image.max() <= 1
     # Lit from the top left: the top-left flank of the bump is brighter than the bottom-right.
     assert image[50, 50] > 0.55 > 0.45 > image[78, 78]
+    # Scale-free, and no float32 overflow for huge (finite) heights.
+    np.testing.assert_allclose(render.shade(bump * np.float32(3e37)), image, atol=1e-4)
     mosaic = render.stats_mosaic(np.random.default_rng(0).random((17, 4, 4)), 4, cell=2)
     assert mosaic.shape[-1] == 3 and mosaic.shape[0] == 5 * 8 + 6 * 2
 

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from jface import detail, io, mesh, render, wrinkles
 from jface.cli._detail import _parse_group
-from jface.cli._mesh import write_face
+from jface.cli._mesh import check_face_outputs, write_face
 from jface.detail._meshes import check_faces
 
 
@@ -100,8 +100,14 @@ def read_face(folder: str | Path) -> detail.Face:
     arrays, meta = io.load_arrays(folder / "hierarchy.npz", kind="MeshHierarchy")
     if "schedule" not in meta:
         raise ValueError(f"{folder / 'hierarchy.npz'} lacks the 'schedule' metadata field")
-    schedule = tuple(int(n) for n in meta["schedule"])
-    hierarchy = mesh.template_hierarchy(None, *schedule)
+    try:
+        schedule = tuple(int(n) for n in meta["schedule"])
+        hierarchy = mesh.template_hierarchy(None, *schedule)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise ValueError(
+            f"{folder / 'hierarchy.npz'} has an invalid 'schedule' (three subdivision counts): "
+            f"{err}"
+        ) from err
     names = ["markers"] + [f"offsets_{k + 1}" for k in range(hierarchy.n_projected)]
     missing = [name for name in names if name not in arrays]
     if missing:
@@ -163,6 +169,8 @@ def _tile_errors(image, target: detail.DetailStats) -> np.ndarray:
 
 
 def _interpolate(args: argparse.Namespace) -> None:
+    for name in ("average", "coerced"):
+        check_face_outputs(Path(args.out) / name, args.format)
     faces = [read_face(f) for f in tqdm(args.faces, desc="read faces", unit="face")]
     check_faces(faces)  # one layout, before their images are stacked
     if args.weights:
@@ -184,7 +192,7 @@ def _interpolate(args: argparse.Namespace) -> None:
     )
     out = Path(args.out)
     for name, face in (("average", result.average), ("coerced", result.coerced)):
-        write_face(out / name, face, meta, args.format, protect=args.faces)
+        write_face(out / name, face, meta, args.format)
     table = {
         name: {"median_tile_std_error": _error(face.image, result.target)}
         for name, face in (("average", result.average), ("coerced", result.coerced))
@@ -196,6 +204,7 @@ def _interpolate(args: argparse.Namespace) -> None:
 
 
 def _add_detail(args: argparse.Namespace) -> None:
+    check_face_outputs(Path(args.out), args.format)
     face = read_face(args.face)
     target, source = _target(args, None)
     result = detail.add_detail(jax.random.key(args.seed), face, target, **_options(args))
@@ -207,7 +216,7 @@ def _add_detail(args: argparse.Namespace) -> None:
         **_options(args),
     )
     out = Path(args.out)
-    write_face(out, result, meta, args.format, protect=(args.face,))
+    write_face(out, result, meta, args.format)
     figure = render.strip([render.shade(face.image), render.shade(result.image)])
     io.write_png(out / "before_after.png", figure, metadata=meta)
     table = {"before": _error(face.image, target), "after": _error(result.image, target)}
@@ -216,6 +225,8 @@ def _add_detail(args: argparse.Namespace) -> None:
 
 
 def _age(args: argparse.Namespace) -> None:
+    for name in ("aged", "detail_only"):
+        check_face_outputs(Path(args.out) / name, args.format)
     young, old = read_face(args.young), read_face(args.old)
     target, source = _target(args, old)
     meta = io.provenance(
@@ -228,17 +239,16 @@ def _age(args: argparse.Namespace) -> None:
         **_options(args),
     )
     out = Path(args.out)
-    protect = (args.young, args.old)
     scores = age_and_compare(
         jax.random.key(args.seed), young, old, target, out, meta, args.levels, _options(args),
-        fmt=args.format, protect=protect,
+        fmt=args.format,
     )  # fmt: skip
     print(json.dumps({"out": str(out), "methods": scores}))
 
 
 def age_and_compare(
     key, young, old, target, out: Path, meta: dict, levels: int, options: dict, *,
-    fmt: str = "obj", protect=(),
+    fmt: str = "obj",
 ) -> dict:  # fmt: skip
     """Age ``young`` towards ``target`` (§3.4), make the §4 baselines beside it and write the
     aged face, the detail-only face, each method's EXR, the Fig. 10 comparison figure and table;
@@ -256,9 +266,9 @@ def age_and_compare(
     scores = detail.method_scores(results, young.image, target)
     steps.update()
     steps.close()
-    write_face(out / "aged", aged, meta, fmt, protect)
+    write_face(out / "aged", aged, meta, fmt)
     detail_only = detail.Face(young.markers, young.offsets, young.base, aged.image, young.schedule)
-    write_face(out / "detail_only", detail_only, meta, fmt, protect)
+    write_face(out / "detail_only", detail_only, meta, fmt)
     for name, image in results.items():
         io.write_exr(out / "methods" / f"{name}.exr", np.asarray(image), metadata=meta)
     # Fig. 10: young, old, then the four methods; below, each one's per-tile error to the target

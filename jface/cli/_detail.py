@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jface import detail, io, render
+from jface.detail._population import check_records
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -83,39 +84,53 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _analyze(args: argparse.Namespace) -> None:
     out = Path(args.out)
-    stems = [Path(name).stem for name in args.files]
-    clashes = sorted({stem for stem in stems if stems.count(stem) > 1})
+    stems = [Path(name).stem.casefold() for name in args.files]
+    clashes = sorted({Path(n).stem for n, s in zip(args.files, stems, strict=True)
+                      if stems.count(s) > 1})  # fmt: skip
     if clashes:
         raise ValueError(f"several inputs share the output name(s) {clashes}; rename them")
+    settings = {
+        "grid": args.grid,
+        "n_scales": args.scales,
+        "n_orientations": args.orientations,
+        "bins": args.bins,
+        "boundary": args.boundary,
+    }
+    for name in args.files:
+        io.check_output(out / (Path(name).stem + ".stats.npz"), (".npz",))
+        io.check_output(out / (Path(name).stem + ".stats.png"), (".png",))
     done = skipped = 0
     for name in tqdm(args.files, desc="analyze", unit="map", disable=len(args.files) < 2):
         target = out / (Path(name).stem + ".stats.npz")
+        picture = target.with_suffix(".png")
+        key = io.content_key([name], {"kind": "DetailStats", **settings})
         if target.exists() and not args.overwrite:
-            _, meta = detail.load_stats(target)
+            with io.own_outputs():
+                _, meta = detail.load_stats(target)
             if meta.get("source") != Path(name).name:
                 raise ValueError(
                     f"{target} holds statistics of {meta.get('source')!r}, not of {name}; "
                     "use another --out or --overwrite"
                 )
-            skipped += 1  # finished by an earlier run: a batch that died keeps what it did
-            continue
-        stats = detail.analyze(
-            io.read_map(name),
-            grid=args.grid,
-            n_scales=args.scales,
-            n_orientations=args.orientations,
-            bins=args.bins,
-            boundary=args.boundary,
-        )
-        detail.save_stats(target, stats, source=Path(name).name, boundary=args.boundary)
+            if meta.get("key") == key and picture.exists():
+                skipped += 1  # same map, same settings: a batch that died keeps what it did
+                continue
+        stats = detail.analyze(io.read_map(name), **settings)
+        detail.save_stats(target, stats, source=Path(name).name, boundary=args.boundary, key=key)
         mosaic = render.stats_mosaic(stats.std, stats.n_orientations)
         meta = io.provenance(source=Path(name).name, grid=args.grid, scales=args.scales)
-        io.write_png(target.with_suffix(".png"), mosaic, metadata=meta)
+        io.write_png(picture, mosaic, metadata=meta)
+        io.commit()  # each finished map survives a crash of a later one
         done += 1
-    print(f"analyzed {done} map(s), kept {skipped} already done, in {out}/")
+    print(
+        f"analyzed {done} map(s), kept {skipped} already done (same content and settings), "
+        f"in {out}/"
+    )
 
 
 def _synthesize(args: argparse.Namespace) -> None:
+    out = io.check_output(args.out, (".exr",))
+    io.check_output(out.with_suffix(".png"), (".png",))
     start = io.read_map(args.start)
     target, stats_meta = detail.load_stats(args.stats)
     boundary = args.boundary or stats_meta.get("boundary", "circular")
@@ -142,25 +157,32 @@ def _synthesize(args: argparse.Namespace) -> None:
         method=method,
         boundary=boundary,
     )
-    inputs = (args.start, args.stats)
-    out = io.write_exr(args.out, np.asarray(result), metadata=meta, protect=inputs)
-    io.write_png(out.with_suffix(".png"), render.shade(result), metadata=meta, protect=inputs)
+    io.write_exr(out, np.asarray(result), metadata=meta)
+    io.write_png(out.with_suffix(".png"), render.shade(result), metadata=meta)
     print(json.dumps({"out": str(out), "median_tile_std_error": float(np.median(error))}))
 
 
-def _read_records(path: str) -> list[dict]:
-    text = Path(path).read_text()
+def _read_records(path: str, n_maps: int) -> list[dict]:
     try:
-        data = json.loads(text)
-    except json.JSONDecodeError:
-        data = [json.loads(line) for line in text.splitlines() if line.strip()]
+        data = io.read_json(path)
+    except ValueError as whole:
+        try:  # not one JSON document: JSON lines, one record per line
+            data = io.read_json(path, lines=True)
+        except ValueError as lines:  # "extra data" after a first document: meant as lines
+            raise (lines if "Extra data" in str(whole) else whole) from None
     if not isinstance(data, list) or not all(isinstance(r, dict) for r in data):
-        raise ValueError(f"{path} must hold a JSON list of records (objects)")
+        raise ValueError(f"{path} must hold a JSON list of records (objects), one per map")
+    if len(data) != n_maps:
+        raise ValueError(f"{path} holds {len(data)} record(s) for {n_maps} map(s); one per map")
+    try:
+        check_records(data)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from err
     return data
 
 
 def _db_build(args: argparse.Namespace) -> None:
-    records = _read_records(args.metadata) if args.metadata else None
+    records = _read_records(args.metadata, len(args.files)) if args.metadata else None
     population = detail.build_database(
         args.files,
         args.out,
@@ -180,18 +202,27 @@ def _parse_group(spec: str) -> tuple[str, dict]:
     criteria = {}
     for rule in rules.split(","):
         field, _, value = rule.partition("=")
+        if not field or not value:
+            raise ValueError(f"--group {spec!r}: {rule!r} is not FIELD=VALUE or FIELD=LOW..HIGH")
         if ".." in value:
-            low, high = value.split("..")
-            criteria[field] = (float(low), float(high))
+            try:
+                low, high = (float(v) for v in value.split(".."))
+            except ValueError:
+                raise ValueError(
+                    f"--group {spec!r}: {value!r} is not a range LOW..HIGH of two numbers"
+                ) from None
+            criteria[field] = (low, high)
         else:
             try:  # numbers compare as numbers ("age=30"), anything else as text ("sex=f")
                 criteria[field] = json.loads(value)
-            except json.JSONDecodeError:
+            except ValueError:
                 criteria[field] = value
     return name, criteria
 
 
 def _db_compare(args: argparse.Namespace) -> None:
+    out = io.check_output(args.out, (".png",))
+    io.check_output(out.with_suffix(".json"), (".json",))
     population = detail.Population.load(args.db)
     groups = {}
     for spec in args.group:
@@ -205,8 +236,8 @@ def _db_compare(args: argparse.Namespace) -> None:
         raise ValueError(f"--scale must be in [0, {population.stats.n_scales - 1}]")
     first = 1 + args.scale * k
     ratios = np.asarray(comparison.ratios[:, first : first + k])
-    out = io.write_png(
-        args.out,
+    io.write_png(
+        out,
         render.polar_glyphs(ratios),
         metadata=io.provenance(db=Path(args.db).name, groups=args.group, scale=args.scale),
     )
@@ -220,8 +251,9 @@ def _db_compare(args: argparse.Namespace) -> None:
 
 
 def _render(args: argparse.Namespace) -> None:
+    io.check_output(args.out, (".png",))
     meta = io.provenance(source=Path(args.map).name)
-    io.write_png(args.out, render.shade(io.read_map(args.map)), metadata=meta, protect=(args.map,))
+    io.write_png(args.out, render.shade(io.read_map(args.map)), metadata=meta)
 
 
 def demo(out: Path, seed: int) -> None:

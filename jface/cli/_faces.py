@@ -10,11 +10,10 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from tqdm import tqdm
 
 from jface import faces, raster
 from jface.cli import _quilt as quilting
-from jface.io import load_arrays, provenance, read_image, write_png
+from jface.io import check_output, load_arrays, provenance, write_png
 
 
 def register(subparsers) -> None:
@@ -44,19 +43,6 @@ def register(subparsers) -> None:
     quilting.add_actions(sub, sample_name="synth")
 
 
-def _read_faces(paths: list[str]) -> np.ndarray:
-    images = []
-    for path in tqdm(paths, desc="reading images", unit="image", disable=len(paths) < 200):
-        img = read_image(path, grey=True)
-        if images and img.shape != images[0].shape:
-            raise ValueError(
-                f"all images must have one size: {paths[0]} is {images[0].shape}, "
-                f"{path} is {img.shape} (align and crop them first)"
-            )
-        images.append(img)
-    return np.stack(images)
-
-
 def _fit(data: np.ndarray, factors: int, components: int, iters: int, seed: int):
     if components == 1:
         return faces.fit_factor_analyser(data, factors, n_iter=iters)
@@ -64,7 +50,8 @@ def _fit(data: np.ndarray, factors: int, components: int, iters: int, seed: int)
 
 
 def _train(args: argparse.Namespace) -> None:
-    data = _read_faces(args.images)
+    check_output(args.out, (".npz",))
+    data, _ = quilting.read_faces(args.images, grey=True)
     start = time.perf_counter()
     result = _fit(data, args.factors, args.components, args.iters, args.seed)
     ll = np.asarray(result.log_likelihood)
@@ -76,7 +63,7 @@ def _train(args: argparse.Namespace) -> None:
         n_iter=int(result.n_iter),
         log_likelihood=float(ll[-1]),
     )
-    faces.save_model(args.out, result.model, meta, protect=tuple(args.images))
+    faces.save_model(args.out, result.model, meta)
     print(
         f"fitted {type(result.model).__name__} to {data.shape[0]} images of "
         f"{data.shape[1]}×{data.shape[2]} in {time.perf_counter() - start:.1f} s: "
@@ -99,7 +86,6 @@ def grid(images: np.ndarray, pad: int = 1) -> np.ndarray:
 
 
 def _write_samples(out: Path, images: np.ndarray, meta: dict, *, scale: int = 1) -> Path:
-    out.mkdir(parents=True, exist_ok=True)
     images = np.clip(images, 0.0, 1.0)
     for i, img in enumerate(images):
         write_png(out / f"sample_{i:03d}.png", img, metadata=meta)
@@ -148,7 +134,6 @@ def demo(out_dir: Path, seed: int) -> None:
     data = face_renders(seed, 120)
     result = faces.fit_factor_analyser(data, 8)
     meta = provenance(seed=seed, step="faces demo", n_images=120, n_factors=8)
-    out.mkdir(parents=True, exist_ok=True)
     faces.save_model(out / "face_model.npz", result.model, meta)
     write_png(out / "training_grid.png", np.kron(grid(np.clip(data[:16], 0, 1)), np.ones((4, 4))))
     images = np.asarray(faces.sample(jax.random.key(seed), result.model, 16))

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import jax
 import numpy as np
 from tqdm import tqdm
 
-from jface.io import provenance, read_map, write_json, write_png
+from jface.io import check_output, provenance, read_map, write_json, write_png
 from jface.render import shade
 from jface.wrinkles import fit_wrinkles, params_to_json
 
@@ -43,9 +42,10 @@ def register(subparsers) -> None:
 
 
 def _fit(args: argparse.Namespace) -> None:
-    out = Path(args.out)
-    if out.suffix != ".json":
-        raise ValueError(f"--out must name a .json file, got {out}")
+    out = check_output(args.out, (".json",))
+    stem = out.with_suffix("")
+    for suffix in ("_convergence.png", "_target_fit.png"):
+        check_output(f"{stem}{suffix}", (".png",))
     for name in ("agents", "epochs", "trials", "steps", "d_levels"):
         if getattr(args, name) < 1:
             raise ValueError(
@@ -88,13 +88,11 @@ def _fit(args: argparse.Namespace) -> None:
         },
         "provenance": meta,
     }
-    protect = (args.patch,)
-    write_json(out, document, protect=protect)
-    stem = out.with_suffix("")
+    write_json(out, document)
     history = np.asarray(fit.swarm.history)
-    write_png(f"{stem}_convergence.png", convergence_plot(history), metadata=meta, protect=protect)
+    write_png(f"{stem}_convergence.png", convergence_plot(history), metadata=meta)
     pair = np.concatenate([shade(patch), np.ones((patch.shape[0], 8)), shade(fit.fitted)], 1)
-    write_png(f"{stem}_target_fit.png", pair, metadata=meta, protect=protect)
+    write_png(f"{stem}_target_fit.png", pair, metadata=meta)
     bad = int(np.sum(fit.swarm.n_nonfinite))
     print(
         f"loss {float(fit.swarm_loss):.4g} (swarm) → {float(fit.loss):.4g} (refined); "

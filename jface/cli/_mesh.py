@@ -69,6 +69,12 @@ def _views(vertices, faces, pose: np.ndarray, center, extent: float, size: int) 
     return render.strip(frames)
 
 
+def check_face_outputs(out: Path, fmt: str) -> None:
+    """Refuse, before any work, a face folder output that would replace an input face."""
+    for name in (f"base.{fmt}", "displacement.exr", "hierarchy.npz"):
+        io.check_output(out / name)
+
+
 def write_face(out: Path, face, meta: dict, fmt: str, protect=()) -> None:
     """Write a face folder: base mesh, displacement EXR + PNG, shaded 3-D views of the base and
     the re-displaced mesh, and the hierarchy (markers, control, offsets, schedule).
@@ -107,8 +113,11 @@ def write_face(out: Path, face, meta: dict, fmt: str, protect=()) -> None:
 
 
 def _remesh(args: argparse.Namespace) -> None:
+    check_face_outputs(Path(args.out_dir), args.format)
     scan = io.read_mesh(args.scan)
-    marks = io.read_landmarks(args.landmarks)
+    marks = io.read_landmarks(
+        args.landmarks, n_vertices=len(scan.vertices), names=mesh.LANDMARK_NAMES
+    )
     start = time.perf_counter()
     result = mesh.remesh(
         scan.vertices,
@@ -144,6 +153,7 @@ def _remesh(args: argparse.Namespace) -> None:
 
 
 def _displace(args: argparse.Namespace) -> None:
+    io.check_output(args.out, (".obj", ".ply"))
     base = io.read_mesh(args.base, merge=False)
     if base.uv is None:
         raise ValueError(f"{args.base} has no per-vertex uv; use a base mesh from jface remesh")

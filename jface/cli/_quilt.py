@@ -102,14 +102,28 @@ def _image_files(names: list[str]) -> list[Path]:
     return files
 
 
-def _read_faces(names: list[str], grey: bool) -> tuple[np.ndarray, list[Path]]:
+def read_faces(names: list[str], grey: bool) -> tuple[np.ndarray, list[Path]]:
+    """Aligned training faces (image files, or folders of them) as one float32 stack.
+
+    Raises:
+        ValueError: fewer than two faces, faces of different sizes, or a constant image (no face
+            in it); the message names the file.
+    """
     files = _image_files(names)
-    images = [io.read_image(f, grey=grey) for f in tqdm(files, desc="read", unit="face")]
-    shapes = {im.shape for im in images}
-    if len(shapes) > 1:
-        raise ValueError(
-            f"training faces must all have one size (aligned), got sizes {sorted(shapes)}"
-        )
+    images = []
+    for file in tqdm(files, desc="read", unit="face", disable=len(files) < 200):
+        image = io.read_image(file, grey=grey)
+        if images and image.shape != images[0].shape:
+            raise ValueError(
+                f"training faces must all have one size (aligned): {files[0]} is "
+                f"{images[0].shape}, {file} is {image.shape}"
+            )
+        if np.ptp(image) == 0:
+            raise ValueError(
+                f"{file} is a constant image (every pixel {float(image.flat[0]):.3g}): "
+                "no face to learn from"
+            )
+        images.append(image)
     return np.stack(images).astype(np.float32), files
 
 
@@ -176,10 +190,19 @@ def _settings(args: argparse.Namespace) -> dict:
 # --- commands -------------------------------------------------------------------------------------
 
 
+def _check_outputs(out: Path, names) -> None:
+    """Refuse, before any work, outputs that would replace an input (a training face, say)."""
+    for name in names:
+        io.check_output(out / name, (".png", ".json"))
+
+
 def _sample(args: argparse.Namespace) -> None:
     if args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
-    images, files = _read_faces(args.images, args.grey)
+    faces_out = [f"face_{i:03d}.png" for i in range(args.n)]
+    extra = ("faces.png", "targets.png", "quilted.png", "sources.png", "summary.json")
+    _check_outputs(Path(args.out), [*faces_out, *extra])
+    images, files = read_faces(args.images, args.grey)
     library = _library(args, images)
     key_target, key_quilt = jax.random.split(jax.random.key(args.seed))
     if args.model:
@@ -270,7 +293,9 @@ def _one_face(path: str, images: np.ndarray, grey: bool, name: str) -> np.ndarra
 def _inpaint(args: argparse.Namespace) -> None:
     if args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
-    images, files = _read_faces(args.images, args.grey)
+    names = [f"inpainted_{i:03d}.png" for i in range(args.n)]
+    _check_outputs(Path(args.out), [*names, "inpainting.png"])
+    images, files = read_faces(args.images, args.grey)
     face = _one_face(args.image, images, args.grey, "--image")
     mask = _read_mask(args.mask, face.shape[:2])
     library = _library(args, images)
@@ -305,7 +330,8 @@ def _inpaint(args: argparse.Namespace) -> None:
 
 
 def _edit(args: argparse.Namespace) -> None:
-    images, _ = _read_faces(args.images, args.grey)
+    _check_outputs(Path(args.out), ("edited.png", "edit.png"))
+    images, _ = read_faces(args.images, args.grey)
     face = _one_face(args.image, images, args.grey, "--image")
     painted = _one_face(args.painted, images, args.grey, "--painted")
     library = _library(args, images)
@@ -327,7 +353,8 @@ def _edit(args: argparse.Namespace) -> None:
 
 
 def _restyle(args: argparse.Namespace) -> None:
-    images, _ = _read_faces(args.images, args.grey)
+    _check_outputs(Path(args.out), ("restyled.png", "restyle.png"))
+    images, _ = read_faces(args.images, args.grey)
     face = _one_face(args.image, images, args.grey, "--image")
     mask = _read_mask(args.mask, face.shape[:2]) if args.mask else None
     library = _library(args, images)

@@ -12,8 +12,10 @@ import numpy as np
 from tqdm import tqdm
 
 from jface.io import (
+    check_output,
     exr_rows,
     provenance,
+    read_json,
     read_map,
     read_mesh,
     save_arrays,
@@ -30,6 +32,7 @@ from jface.wrinkles import (
     extract_orientation,
     find_pores,
     load_params,
+    make_pores,
     radius_map_from_mesh,
     sample_pores,
     save_params,
@@ -157,6 +160,8 @@ def _simulate(args: argparse.Namespace) -> None:
     out = Path(args.out)
     if args.steps < 0 or args.size < 16:
         raise ValueError("--steps must be ≥ 0 and --size ≥ 16")
+    for name in ("wrinkles.npz", "params.json", "wrinkles.png"):
+        check_output(out / name)
     levels = _levels(args)
     radius_map = read_map(args.radius_map) if args.radius_map else None
     start = time.perf_counter()
@@ -181,8 +186,7 @@ def _simulate(args: argparse.Namespace) -> None:
         samples=args.samples,
         k=args.k,
     )
-    protect = (args.params,) if args.params else ()
-    save_arrays(out / "wrinkles.npz", arrays, meta, kind="WrinkleGraph", protect=protect)
+    save_arrays(out / "wrinkles.npz", arrays, meta, kind="WrinkleGraph")
     write_json(out / "params.json", {"kind": "WrinkleParams", "levels": meta["levels"]})
     picture = draw_graph(results, args.size, args.periodic)
     write_png(out / "wrinkles.png", picture, metadata=meta)
@@ -195,10 +199,11 @@ def _render(args: argparse.Namespace) -> None:
         raise ValueError(f"--size must be in [16, 16384], got {args.size}")
     if args.steps < 0 or not args.depth > 0:
         raise ValueError("--steps must be ≥ 0 and --depth > 0")
+    out = check_output(args.out, (".exr",))
+    check_output(out.with_suffix(".png"), (".png",))
+    if args.mesh:
+        check_output(out.with_suffix(".obj"), (".obj",))
     levels = load_params(args.params)
-    out = Path(args.out)
-    if out.suffix.lower() != ".exr":
-        raise ValueError(f"--out must name an .exr file, got {out}")
     base = read_map(args.base) if args.base else None
     if base is not None and base.shape != (args.size, args.size):
         raise ValueError(f"--base is {base.shape}, expected ({args.size}, {args.size}) (--size)")
@@ -212,7 +217,6 @@ def _render(args: argparse.Namespace) -> None:
         radius_map = radius_map_from_mesh(mesh, min(args.size, _RADIUS_SIDE))
     initial = _read_pores(args.pores, args.periodic) if args.pores else None
     start = time.perf_counter()
-    inputs = tuple(x for x in (args.params, args.base, args.mesh, args.pores) if x)
     meta = provenance(
         seed=args.seed, levels=[p.to_dict() for p in levels], size=args.size, base=args.base,
         mesh=args.mesh, periodic=args.periodic, steps=args.steps, samples=args.samples,
@@ -222,13 +226,13 @@ def _render(args: argparse.Namespace) -> None:
     key = jax.random.key(args.seed)
     shape = (args.size, args.size)
     if args.size > BANDED_ABOVE:
-        counts, preview = _render_bands(key, levels, shape, base, out, meta, inputs, run)
+        counts, preview = _render_bands(key, levels, shape, base, out, meta, run)
     else:
         with tqdm(total=1, desc="simulate + draw", leave=False):
             syn = synthesize(key, levels, shape, **run)
         disp = syn.displacement if base is None else blend_with_scan(base, syn.displacement)
         preview = np.asarray(disp)
-        write_exr(out, preview, metadata=meta, protect=inputs)
+        write_exr(out, preview, metadata=meta)
         counts = [int(lv.pores.count) for lv in syn.levels]
     write_png(out.with_suffix(".png"), shade(preview), metadata=meta)
     if mesh is not None:
@@ -239,19 +243,19 @@ def _render(args: argparse.Namespace) -> None:
         moved = displace(mesh, preview[::-1], scale=args.depth * diag)
         comment = f"jface {meta['jface_version']} wrinkles render, seed {args.seed}"
         write_mesh(out.with_suffix(".obj"), np.asarray(moved.vertices), np.asarray(moved.faces),
-                   uv=np.asarray(moved.uv), comment=comment, protect=inputs)  # fmt: skip
+                   uv=np.asarray(moved.uv), comment=comment)  # fmt: skip
     pores = ", ".join(f"{n} pores" for n in counts)
     print(f"wrinkles render: {pores}; {args.size}² in {time.perf_counter() - start:.1f} s → {out}")
 
 
-def _render_bands(key, levels, shape, base, out, meta, inputs, run):
+def _render_bands(key, levels, shape, base, out, meta, run):
     """Draw and write the map band by band; returns the pore counts and a ≤ 2048² preview (for
     the PNG and the mesh), so the whole map is never in memory."""
     step = -(-shape[0] // _PREVIEW)
     bands = synthesize_bands(key, levels, shape, **run)
     preview = []
     with (
-        exr_rows(out, shape, metadata=meta, protect=inputs) as write,
+        exr_rows(out, shape, metadata=meta) as write,
         tqdm(total=shape[0], desc="draw + write", unit="row", leave=False) as bar,
     ):
         for first, rows in bands.rows:
@@ -265,31 +269,47 @@ def _render_bands(key, levels, shape, base, out, meta, inputs, run):
 
 
 def _read_pores(path, periodic):
-    from jface.io import read_json
-    from jface.wrinkles import make_pores
-
     data = read_json(path)
-    if not isinstance(data, dict) or data.get("kind") != "Pores":
-        raise ValueError(f"{path} is not a pores file (kind 'Pores') from 'jface wrinkles extract'")
-    positions = np.asarray(data["positions"], np.float32).reshape(-1, 2)
-    return make_pores(positions, periodic=periodic) if len(positions) else None
+    if not isinstance(data, dict) or data.get("kind") != "Pores" or "positions" not in data:
+        raise ValueError(
+            f"{path} is not a pores file (kind 'Pores' with 'positions') from "
+            "'jface wrinkles extract'"
+        )
+    try:
+        positions = np.asarray(data["positions"], np.float64)
+    except (TypeError, ValueError, OverflowError):
+        positions = np.zeros((1, 0))  # not numbers: refused below
+    if positions.size == 0 and positions.ndim == 1:
+        return None  # no pores: the first level samples its own
+    if positions.ndim != 2 or positions.shape[1] != 2:
+        raise ValueError(f"{path}: 'positions' must be a list of [x, y] pairs of numbers")
+    inside = np.isfinite(positions) & (positions >= 0) & (positions <= 1)
+    if not np.all(inside):
+        bad = int(np.flatnonzero(~inside.all(axis=1))[0])
+        raise ValueError(
+            f"{path}: pore {bad} at {positions[bad].tolist()} lies outside the unit square "
+            "[0, 1]² (or is not finite)"
+        )
+    return make_pores(positions.astype(np.float32), periodic=periodic)
 
 
 def _extract(args: argparse.Namespace) -> None:
+    out = check_output(args.out, (".json",))
+    pores_out = Path(args.pores_out) if args.pores_out else out.with_name(out.stem + "_pores.json")
+    check_output(pores_out, (".json",))
+    if pores_out.resolve() == out.resolve():
+        raise ValueError(f"--out and --pores-out name one file, {out}; give two names")
     coarse = read_map(args.coarse)
     start = time.perf_counter()
     orient = extract_orientation(coarse, crop=args.crop, frequency=args.frequency)
     pores = find_pores(coarse, threshold=args.threshold)
-    out = Path(args.out)
     save_params(out, WrinkleParams(d=args.d, theta=np.asarray(orient.theta)))
-    pores_out = Path(args.pores_out) if args.pores_out else out.with_name(out.stem + "_pores.json")
     n = int(pores.count)
     write_json(
         pores_out,
         {"kind": "Pores", "positions": np.asarray(pores.positions)[:n].tolist(),
          **provenance(source=str(args.coarse), crop=args.crop, frequency=args.frequency,
                       threshold=args.threshold)},
-        protect=(args.coarse,),
     )  # fmt: skip
     gy, gx = orient.theta.shape
     print(f"wrinkles extract: {gy}×{gx} orientations, {n} pores in "

@@ -3,12 +3,12 @@ devices, with progress, and resumable (a crash keeps every finished chunk)."""
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import functools
-import hashlib
-import json
 import os
 from collections.abc import Sequence
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import jax
@@ -18,7 +18,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 from jface import _checks, io, pyramid
-from jface.detail._population import Population
+from jface.detail._population import Population, check_records
 from jface.detail._stats import (
     DetailStats,
     _analyze,
@@ -84,17 +84,21 @@ def build_database(
 ) -> Population:
     """Analyse many displacement maps into one population file, resumably.
 
-    Maps are read and analysed ``chunk`` at a time (memory stays bounded), each chunk sharded
-    over all devices (:func:`analyze_batch`). Every finished chunk is written at once to a
-    folder beside ``out`` (``out`` + ".parts"); a rerun after a crash loads the finished chunks
-    and analyses only the rest. When all chunks are done, the population is written to ``out``
-    and the parts are removed.
+    Every map's size is read from its header first, so maps of mixed sizes or a layout that
+    does not fit them fail before any analysis. Maps are then read and analysed ``chunk`` at a
+    time (memory stays bounded), each chunk sharded over all devices (:func:`analyze_batch`).
+    Every finished chunk is written at once to a folder beside ``out`` (``out`` + ".parts"),
+    named by a key of its maps' content and the settings (:func:`jface.io.content_key`); a
+    rerun after a crash reuses the chunks whose key still matches and analyses the rest, so a
+    map edited in between is analysed again. When all chunks are done, the population is written
+    to ``out`` and the parts are removed. ``out`` is never one of the sources.
 
     Args:
         sources: map files (EXR, PNG, .npy), all of one size.
         out: the population file (``.npz``) to write.
-        records: one metadata dict per map (id, age, sex, ethnicity, tags, ...); default: the
-            file stem as id.
+        records: one metadata dict per map (id, age, sex, ethnicity, tags, ...), ids unique;
+            default: the file stem as id (with as many parent folders as make the ids unique,
+            e.g. ``young/face`` and ``old/face``).
         grid, n_scales, n_orientations, bins, boundary: as for :func:`jface.detail.analyze`.
         chunk: maps per chunk.
         progress: show a progress bar.
@@ -102,6 +106,12 @@ def build_database(
 
     Returns:
         The :class:`Population`.
+
+    Raises:
+        FileNotFoundError: a source that does not exist.
+        ValueError: no sources, a source given twice, maps of different sizes, a bad layout,
+            records that do not match the maps (count, missing or repeated ids), an unreadable
+            map (the message names it), or ``out`` that is not a new ``.npz`` name.
     """
     sources = [Path(s) for s in sources]
     if not sources:
@@ -109,40 +119,84 @@ def build_database(
     missing = [str(s) for s in sources if not s.is_file()]
     if missing:
         raise FileNotFoundError(f"{len(missing)} source map(s) not found, e.g. {missing[0]}")
-    if records is None:
-        records = [{"id": s.stem} for s in sources]
-    records = [dict(r) for r in records]
+    labels = _labels(sources)
+    records = [{"id": label} for label in labels] if records is None else [dict(r) for r in records]
     if len(records) != len(sources):
         raise ValueError(f"need one record per map: {len(sources)} maps, {len(records)} records")
+    check_records(records)
     chunk = _checks.integer(chunk, "chunk", low=1)
-    out = Path(out)
-    parts = out.with_name(out.name + ".parts")
-    layout = {
-        "grid": grid,
-        "n_scales": n_scales,
-        "n_orientations": n_orientations,
-        "bins": bins,
-        "boundary": boundary,
-    }
-    done: list[DetailStats] = []
-    starts = range(0, len(sources), chunk)
-    for start in tqdm(starts, desc="analyze", unit="chunk", disable=not progress):
-        names = [str(s) for s in sources[start : start + chunk]]
-        tag = hashlib.sha1(json.dumps([names, layout]).encode()).hexdigest()[:12]
-        part = parts / f"{start:08d}-{tag}.npz"
-        if part.exists():
-            arrays, meta = io.load_arrays(part, kind="DetailStatsChunk")
-            done.append(stats_from_arrays(arrays, meta, part))
-            continue
-        images = np.stack([io.read_map(name) for name in names])
-        stats = analyze_batch(images, devices=devices, **layout)
-        arrays, meta = stats_to_arrays(stats)
-        io.save_arrays(part, arrays, {**meta, "sources": names}, kind="DetailStatsChunk")
-        done.append(stats)
-    merged = jax.tree.map(lambda *xs: jnp.concatenate(xs), *done)
-    population = Population(merged, tuple(records))
-    population.save(out, boundary=boundary, sources=[s.name for s in sources])
-    for part in parts.glob("*.npz"):
-        part.unlink()
-    parts.rmdir()
+    with io.session(sources):
+        out = io.check_output(out, (".npz",))
+        shape = _common_shape(sources)
+        grid, n_scales, n_orientations, bins = validate_layout(
+            shape, grid, n_scales, n_orientations, bins, boundary
+        )
+        layout = {
+            "grid": grid,
+            "n_scales": n_scales,
+            "n_orientations": n_orientations,
+            "bins": bins,
+            "boundary": boundary,
+        }
+        parts = out.with_name(out.name + ".parts")
+        done: list[DetailStats] = []
+        starts = range(0, len(sources), chunk)
+        for start in tqdm(starts, desc="analyze", unit="chunk", disable=not progress):
+            names = sources[start : start + chunk]
+            key = io.content_key(names, {"kind": "DetailStatsChunk", **layout})
+            part = parts / f"{start:08d}-{key[:16]}.npz"
+            if part.exists():
+                with io.own_outputs():
+                    arrays, meta = io.load_arrays(part, kind="DetailStatsChunk")
+                if meta.get("key") == key:
+                    done.append(stats_from_arrays(arrays, meta, part))
+                    continue
+            images = np.stack([io.read_map(name) for name in names])
+            stats = analyze_batch(images, devices=devices, **layout)
+            arrays, meta = stats_to_arrays(stats)
+            sources_meta = {"sources": [str(n) for n in names], "key": key}
+            io.save_arrays(part, arrays, {**meta, **sources_meta}, kind="DetailStatsChunk")
+            io.commit()  # a finished chunk survives a crash of a later one
+            done.append(stats)
+        merged = jax.tree.map(lambda *xs: jnp.concatenate(xs), *done)
+        population = Population(merged, tuple(records))
+        population.save(out, boundary=boundary, sources=labels)
+        io.commit()
+        for part in parts.glob("*.npz"):
+            part.unlink()
+        with contextlib.suppress(OSError):  # a folder the user put other files in stays
+            parts.rmdir()
     return population
+
+
+def _labels(sources: Sequence[Path]) -> list[str]:
+    """A short unique name per map: its stem, with as many parent folders as tell it apart
+    (compared without case), else its whole path."""
+    resolved = [os.path.realpath(s) for s in sources]
+    counts = collections.Counter(resolved)
+    twice = sorted({str(s) for s, r in zip(sources, resolved, strict=True) if counts[r] > 1})
+    if twice:
+        raise ValueError(f"each map must be given once; given more than once: {twice[:5]}")
+    stems = [PurePosixPath(*Path(r).with_suffix("").parts) for r in resolved]
+    labels: list[str | None] = [None] * len(stems)
+    pending = list(range(len(stems)))
+    for depth in range(1, max(len(s.parts) for s in stems) + 1):
+        names = {i: str(PurePosixPath(*stems[i].parts[-depth:])) for i in pending}
+        taken = collections.Counter(n.casefold() for n in [*names.values(), *filter(None, labels)])
+        for i, name in names.items():
+            if taken[name.casefold()] == 1:
+                labels[i] = name
+        pending = [i for i in pending if labels[i] is None]
+    return [label or resolved[i] for i, label in enumerate(labels)]
+
+
+def _common_shape(sources: Sequence[Path]) -> tuple[int, int]:
+    first = io.map_shape(sources[0])
+    for source in sources[1:]:
+        shape = io.map_shape(source)
+        if shape != first:
+            raise ValueError(
+                f"{source} is {shape[0]}×{shape[1]}, but {sources[0]} is {first[0]}×{first[1]}: "
+                "the maps of a database must have one size"
+            )
+    return first

@@ -22,6 +22,17 @@ from jface.detail._stats import (
 )
 
 
+def check_records(records: Sequence[dict[str, Any]]) -> None:
+    """Raise ValueError unless every record is a dict with an ``"id"`` and the ids are unique."""
+    bad = [i for i, r in enumerate(records) if not isinstance(r, dict) or r.get("id") is None]
+    if bad:
+        raise ValueError(f"every record needs an 'id' field; record(s) {bad[:10]} have none")
+    ids = [json.dumps(r["id"], sort_keys=True) for r in records]
+    repeated = sorted({i for i in ids if ids.count(i) > 1})
+    if repeated:
+        raise ValueError(f"record ids must be unique; repeated: {', '.join(repeated[:10])}")
+
+
 @dataclasses.dataclass(frozen=True)
 class Population:
     """A stack of :class:`DetailStats` (leading axis = face) and one metadata record per face.
@@ -42,11 +53,7 @@ class Population:
             )
         if len(self.records) != n:
             raise ValueError(f"need one record per face: {n} faces, {len(self.records)} records")
-        ids = [r.get("id") for r in self.records]
-        if any(i is None for i in ids):
-            raise ValueError("every record needs an 'id' field")
-        if len(set(ids)) != len(ids):
-            raise ValueError("record ids must be unique")
+        check_records(self.records)
 
     @classmethod
     def from_faces(
@@ -111,7 +118,11 @@ class Population:
         arrays, meta = io.load_arrays(path, kind="Population")
         if not isinstance(meta.get("records"), list):
             raise ValueError(f"{path} holds a malformed Population: no records")
-        return cls(stats_from_arrays(arrays, meta, path), tuple(meta["records"]))
+        stats = stats_from_arrays(arrays, meta, path)
+        try:
+            return cls(stats, tuple(meta["records"]))
+        except ValueError as err:
+            raise ValueError(f"{path} holds a malformed Population: {err}") from err
 
     def table(self) -> str:
         """One JSON line per face: its record and its mean std per band (for quick looks)."""

@@ -9,6 +9,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
@@ -114,23 +115,31 @@ def validate_layout(
 
 def check_stats(stats: Any, name: str = "target") -> DetailStats:
     """Raise TypeError/ValueError unless ``stats`` is well-formed :class:`DetailStats`:
-    finite, non-negative deviations, one band per pyramid band, consistent histograms."""
+    floating-point, finite, non-negative deviations, one band per pyramid band, consistent
+    histograms. Value checks look at concrete arrays only (with numpy, so they add nothing to a
+    trace); under ``jax.jit``/``jax.vmap`` tracing they step aside."""
     if not isinstance(stats, DetailStats):
         raise TypeError(f"{name} must be DetailStats, got {type(stats).__name__}")
     n_bands = 1 + stats.n_scales * stats.n_orientations
     std = stats.std
+    for field in ("std", "probabilities", "ranges"):
+        value = getattr(stats, field)
+        if value is not None and not jnp.issubdtype(value.dtype, jnp.floating):
+            raise TypeError(
+                f"{name}.{field} must be floating point (float32 or float64), got "
+                f"{_checks.describe(value)}"
+            )
     if std.ndim < 3 or std.shape[-3] != n_bands or std.shape[-1] != std.shape[-2]:
         raise ValueError(
             f"{name}.std must be (..., {n_bands}, grid, grid) for {stats.n_scales} scales × "
             f"{stats.n_orientations} orientations, got {tuple(std.shape)}"
         )
     if not _checks.is_traced(std):
-        if not bool(jnp.all(jnp.isfinite(std))):
+        values = np.asarray(std)
+        if not np.all(np.isfinite(values)):
             raise ValueError(f"{name}.std must be finite, got NaN or infinite values")
-        if bool(jnp.any(std < 0)):
-            raise ValueError(
-                f"{name}.std must be non-negative, got a minimum of {float(std.min())}"
-            )
+        if np.any(values < 0):
+            raise ValueError(f"{name}.std must be non-negative, got a minimum of {values.min()}")
     if (stats.probabilities is None) != (stats.ranges is None):
         raise ValueError(f"{name} must have both probabilities and ranges, or neither")
     if stats.full:
@@ -140,6 +149,10 @@ def check_stats(stats: Any, name: str = "target") -> DetailStats:
                 f"{name} histograms must be {expected} with ranges {(*std.shape, 2)}, got "
                 f"{tuple(stats.probabilities.shape)} and {tuple(stats.ranges.shape)}"
             )
+        for field in ("probabilities", "ranges"):
+            value = getattr(stats, field)
+            if not _checks.is_traced(value) and not np.all(np.isfinite(np.asarray(value))):
+                raise ValueError(f"{name}.{field} must be finite, got NaN or infinite values")
     return stats
 
 
@@ -150,10 +163,11 @@ def check_weights(weights: ArrayLike, n: int, dtype) -> Float[Array, " n"]:
         raise ValueError(f"weights must have {n} entries (one per face), got {weights.shape[0]}")
     if _checks.is_traced(weights):
         return weights
-    if bool(jnp.any(weights < 0)):
-        raise ValueError(f"weights must be non-negative, got {weights.tolist()}")
-    if abs(float(weights.sum()) - 1.0) > 1e-4:
-        raise ValueError(f"weights must sum to 1, got {float(weights.sum()):.6g}")
+    values = np.asarray(weights)
+    if np.any(values < 0):
+        raise ValueError(f"weights must be non-negative, got {values.tolist()}")
+    if abs(float(values.sum()) - 1.0) > 1e-4:
+        raise ValueError(f"weights must sum to 1, got {float(values.sum()):.6g}")
     return weights
 
 
@@ -195,7 +209,7 @@ def analyze(
     grid, n_scales, n_orientations, bins = validate_layout(
         image.shape, grid, n_scales, n_orientations, bins, boundary
     )
-    if not _checks.is_traced(image) and float(jnp.ptp(image)) == 0.0:
+    if not _checks.is_traced(image) and np.ptp(np.asarray(image)) == 0.0:
         raise ValueError(
             f"image is constant (every pixel {float(image[0, 0]):g}): it has no detail to analyse"
         )

@@ -6,6 +6,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jax.typing import ArrayLike
 from jaxtyping import Array, Float, PRNGKeyArray
@@ -95,7 +96,7 @@ def synthesize(
     key = _checks.key(key)
     start = _checks.float_array(start, "start", ndim=2)
     check_stats(target, "target")
-    if not _checks.is_traced(target.std) and not bool(jnp.any(target.std > 0)):
+    if not _checks.is_traced(target.std) and not np.any(np.asarray(target.std) > 0):
         raise ValueError("target describes no detail (every deviation is zero): nothing to reach")
     if target.std.ndim != 3:
         raise ValueError(

@@ -51,13 +51,17 @@ _IMAGE_MODELS = (FactorAnalyser, MixtureOfFactorAnalysers)
 
 
 def _training_data(data: ArrayLike, mask: ArrayLike | None, name: str = "data"):
-    """Validate ``(n, *shape)`` training images and an optional observed-pixel mask."""
+    """Validate ``(n, *shape)`` training images and an optional observed-pixel mask.
+
+    Value checks (finiteness, empty rows and columns of the mask) look at concrete arrays
+    only: under ``jax.jit``/``jax.vmap`` tracing they step aside.
+    """
     arr = _checks.float_array(data, name, min_ndim=2, finite=mask is None)
     shape = tuple(arr.shape[1:])
     flat = arr.reshape(arr.shape[0], -1)
     if mask is None:
         return flat, None, shape
-    m = np.asarray(mask)
+    m = mask if isinstance(mask, jax.Array) else np.asarray(mask)
     if m.dtype != np.bool_:
         raise TypeError(
             f"mask must be a boolean array (True = observed), got {_checks.describe(m)}"
@@ -65,12 +69,16 @@ def _training_data(data: ArrayLike, mask: ArrayLike | None, name: str = "data"):
     if m.shape != arr.shape:
         raise ValueError(f"mask must have the shape of {name}, {arr.shape}, got {m.shape}")
     m = m.reshape(flat.shape)
-    observed_values = np.asarray(flat)[m]
-    if not np.all(np.isfinite(observed_values)):
-        bad = int(np.sum(~np.isfinite(observed_values)))
-        raise ValueError(
-            f"{name} must be finite where observed, got {bad} NaN or infinite value(s)"
-        )
+    if _checks.is_traced(m):
+        return flat, m, shape
+    m = np.asarray(m)
+    if not _checks.is_traced(flat):
+        observed_values = np.asarray(flat)[m]
+        if not np.all(np.isfinite(observed_values)):
+            bad = int(np.sum(~np.isfinite(observed_values)))
+            raise ValueError(
+                f"{name} must be finite where observed, got {bad} NaN or infinite value(s)"
+            )
     empty_rows = np.flatnonzero(~m.any(axis=1))
     if empty_rows.size:
         raise ValueError(f"mask has no observed pixel in image(s) {empty_rows[:10].tolist()}")
@@ -100,7 +108,8 @@ def _fit_settings(n: int, d: int, n_factors: Any, n_iter: Any, tol: Any, noise_f
 def _fit_fa(flat, m, shape, n_factors, n_iter, tol, noise_floor) -> EMResult:
     dtype = flat.dtype
     tol_arr = jnp.asarray(tol, dtype)
-    if m is None or bool(jnp.all(m)):
+    # a traced mask may miss pixels: the masked EM, which equals the complete one on full masks
+    if m is None or (not _checks.is_traced(m) and bool(np.all(np.asarray(m)))):
         mu = jnp.mean(flat, axis=0)
         x = flat - mu
         floor = _em.noise_floor_value(jnp.mean(x * x, axis=0), noise_floor)

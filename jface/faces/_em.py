@@ -25,8 +25,10 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from jface import _checks
 from jface.faces._fa import chol_solve, log_det_chol
 
 
@@ -333,15 +335,29 @@ def fit_masked_em(x: Array, m: Array, params: tuple, n_iter: int, tol: Array, fl
 
 def noise_floor_value(variance: Array, noise_floor: float, name: str = "data") -> Array:
     """The absolute noise floor (``noise_floor`` × mean pixel variance); warn about constant
-    pixels, whose noise variance it sets."""
-    mean_var = float(jnp.mean(variance))
+    pixels, whose noise variance it sets.
+
+    Constant data (no variance at all) is refused: with ``ValueError`` for concrete data, and
+    under ``jax.jit``/``jax.vmap`` tracing with an error when the compiled fit runs
+    (``equinox.error_if``); the warning needs concrete data.
+    """
+    if _checks.is_traced(variance):
+        mean_var = jnp.mean(variance)
+        floor = eqx.error_if(
+            noise_floor * mean_var,
+            mean_var <= 0.0,
+            f"{name} is constant: every pixel has zero variance, nothing to model",
+        )
+        return floor.astype(variance.dtype)
+    values = np.asarray(variance)
+    mean_var = float(np.mean(values))
     if mean_var <= 0.0:
         raise ValueError(f"{name} is constant: every pixel has zero variance, nothing to model")
     floor = noise_floor * mean_var
-    constant = int(jnp.sum(variance <= 1e-12 * mean_var))
+    constant = int(np.sum(values <= 1e-12 * mean_var))
     if constant:
         warnings.warn(
-            f"{constant} of {variance.shape[0]} pixels are constant across the training images "
+            f"{constant} of {values.shape[0]} pixels are constant across the training images "
             f"(zero variance); their noise variance is floored at {floor:.3g} "
             f"(noise_floor={noise_floor:g} × mean pixel variance)",
             UserWarning,

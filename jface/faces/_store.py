@@ -56,7 +56,19 @@ def load_model(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
     name = meta.get("model_type")
     if name not in _FIELDS or set(arrays) != set(_FIELDS[name]):
         raise ValueError(f"{path} is not a valid face model file (type {name!r})")
-    shape = tuple(int(s) for s in meta["shape"])
+    try:
+        shape = tuple(int(s) for s in meta["shape"])
+    except (KeyError, TypeError, ValueError, OverflowError) as err:
+        raise ValueError(f"{path} has no valid image 'shape' in its metadata") from err
+    bad = [f for f in _FIELDS[name] if arrays[f].dtype.kind != "f"]
+    if bad:
+        raise ValueError(f"{path}: model arrays {bad} are not floating point")
+    bad = [f for f in _FIELDS[name] if not np.all(np.isfinite(arrays[f]))]
+    if bad or not np.all(arrays[_FIELDS[name][-1]] > 0):
+        raise ValueError(
+            f"{path}: model arrays {bad or [_FIELDS[name][-1]]} hold NaN, infinite or (noise) "
+            "non-positive values"
+        )
     values = [jnp.asarray(arrays[f]) for f in _FIELDS[name]]
     try:
         if name == "MixtureOfFactorAnalysers":

@@ -1,9 +1,22 @@
 """Files in and out: OpenEXR maps, PNG images, meshes and landmarks, arrays + metadata. The only
-place that touches disk (besides the command line)."""
+place that touches disk (besides the command line).
+
+Every writer goes through one atomic writer (:func:`atomic_path`); inside a :func:`session` (one
+per ``jface`` command) it also refuses to overwrite the command's inputs and stages the outputs
+until the command succeeds (see :mod:`jface.io._files`).
+"""
 
 from jface.io._arrays import load_arrays, save_arrays
-from jface.io._exr import ExrImage, exr_rows, read_exr, read_map, write_exr
-from jface.io._files import atomic_path, write_json
+from jface.io._exr import ExrImage, exr_rows, map_shape, read_exr, read_map, write_exr
+from jface.io._files import (
+    atomic_path,
+    check_output,
+    commit,
+    content_key,
+    own_outputs,
+    session,
+    write_json,
+)
 from jface.io._images import read_image, write_png
 from jface.io._json import read_json
 from jface.io._meshes import MeshData, read_landmarks, read_mesh, write_landmarks, write_mesh
@@ -13,8 +26,13 @@ __all__ = [
     "ExrImage",
     "MeshData",
     "atomic_path",
+    "check_output",
+    "commit",
+    "content_key",
     "exr_rows",
     "load_arrays",
+    "map_shape",
+    "own_outputs",
     "provenance",
     "read_exr",
     "read_image",
@@ -23,6 +41,7 @@ __all__ = [
     "read_map",
     "read_mesh",
     "save_arrays",
+    "session",
     "write_exr",
     "write_json",
     "write_landmarks",

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from jface.io._files import atomic_path
+from jface.io._files import atomic_path, check_output, input_file
 
 _META = "__metadata__"
 
@@ -26,7 +25,7 @@ def save_arrays(
     """Save arrays and JSON metadata in one compressed ``.npz`` file, atomically.
 
     Args:
-        path: output file (".npz" is the convention).
+        path: output file, ending in ".npz".
         arrays: name → array (numpy or JAX).
         metadata: JSON-serialisable description (version, seed, parameters, ...).
         kind: what the file holds (e.g. "DetailStats"); checked again on load.
@@ -34,10 +33,10 @@ def save_arrays(
     """
     if _META in arrays:
         raise ValueError(f"array name {_META!r} is reserved")
+    path = check_output(path, (".npz",), protect=protect)
     blob = json.dumps({"kind": kind, **metadata})
     payload = {name: np.asarray(value) for name, value in arrays.items()}
     payload[_META] = np.frombuffer(blob.encode(), dtype=np.uint8)
-    path = Path(path)
     with atomic_path(path, protect=protect) as tmp, open(tmp, "wb") as handle:
         np.savez_compressed(handle, **payload)
     return path
@@ -48,17 +47,21 @@ def load_arrays(path: str | os.PathLike, *, kind: str) -> tuple[dict[str, np.nda
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: corrupt, truncated, not a jface file, or a file of another kind.
+        ValueError: corrupt, truncated, not a jface file, a file of another kind, or arrays
+            declared larger than memory.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such file: {path}")
+    path = input_file(path, "file")
     try:
-        with np.load(path, allow_pickle=False) as data:
+        # our own handle: numpy leaves the file open when it fails to read a bad archive
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
-        msg = f"{path} is not a readable jface .npz file (corrupt, truncated or another format)"
-        raise ValueError(msg) from err
+    except MemoryError as err:
+        raise ValueError(f"{path} declares arrays larger than memory (corrupt?): {err}") from err
+    except Exception as err:  # zipfile, zlib, numpy's header parser: many types for bad files
+        raise ValueError(
+            f"{path} is not a readable jface .npz file (corrupt, truncated or another format: "
+            f"{type(err).__name__}: {err})"
+        ) from err
     if _META not in arrays:
         raise ValueError(f"{path} is not a jface file: it has no metadata")
     try:

@@ -13,8 +13,8 @@ import Imath
 import numpy as np
 import OpenEXR
 
-from jface.io._files import atomic_path
-from jface.io._images import read_image
+from jface.io._files import atomic_path, check_output, input_file
+from jface.io._images import image_size, read_image
 
 _COMPRESSION = {
     "none": OpenEXR.NO_COMPRESSION,
@@ -76,7 +76,7 @@ def write_exr(
     """Write a map to an OpenEXR file, atomically.
 
     Args:
-        path: output file.
+        path: output file, ending in ".exr".
         data: an (H, W) map (channel "Y"), an (H, W, 3|4) image (RGB[A]) or a dict of channels.
         half: store 16-bit half floats instead of float32.
         compression: "zstd" (default), "zip", "piz" or "none".
@@ -87,6 +87,7 @@ def write_exr(
     Returns:
         The path written.
     """
+    path = check_output(path, (".exr",), protect=protect)
     if compression not in _COMPRESSION:
         raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}")
     channels = _as_channels(data)
@@ -98,7 +99,6 @@ def write_exr(
     }
     for key, value in (metadata or {}).items():
         header[_PREFIX + key] = json.dumps(value)
-    path = Path(path)
     with atomic_path(path, protect=protect) as tmp:
         OpenEXR.File(header, channels).write(str(tmp))
     return path
@@ -134,7 +134,7 @@ def exr_rows(
                 write(band)
 
     Args:
-        path: output file.
+        path: output file, ending in ".exr".
         shape: ``(H, W)`` of the whole map.
         compression: "zip" (default), "piz", "none" ("zstd" writes ZIP here).
         metadata: provenance, stored like :func:`write_exr`'s.
@@ -155,6 +155,7 @@ def exr_rows(
         and all(isinstance(n, int | np.integer) and n > 0 for n in shape)
     ):
         raise ValueError(f"shape must be two positive integers (H, W), got {shape!r}")
+    path = check_output(path, (".exr",), protect=protect)
     h, w = int(shape[0]), int(shape[1])
     header = OpenEXR.Header(w, h)
     header["channels"] = {"Y": Imath.Channel(Imath.PixelType(Imath.PixelType.FLOAT))}
@@ -173,7 +174,7 @@ def exr_rows(
         out.writePixels({"Y": band.tobytes()}, band.shape[0])
         done += band.shape[0]
 
-    with atomic_path(Path(path), protect=protect) as tmp:
+    with atomic_path(path, protect=protect) as tmp:
         out = OpenEXR.OutputFile(str(tmp), header)
         try:
             yield write
@@ -188,11 +189,10 @@ def read_exr(path: str | os.PathLike) -> ExrImage:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: the file is not a readable OpenEXR image (corrupt or truncated).
+        ValueError: the file is not a readable OpenEXR image (corrupt or truncated, or it
+            declares more pixels than memory holds).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such EXR file: {path}")
+    path = input_file(path, "EXR file")
     try:
         exr = OpenEXR.File(str(path), separate_channels=True)
         header = exr.header()
@@ -201,8 +201,10 @@ def read_exr(path: str | os.PathLike) -> ExrImage:
             for name, channel in exr.channels().items()
         }
     except Exception as err:  # the bindings raise bare RuntimeError/IOError for bad files
+        reason = "it declares more pixels than memory holds" if isinstance(err, MemoryError) \
+            else f"{type(err).__name__}: {err}"  # fmt: skip
         raise ValueError(
-            f"{path} is not a readable OpenEXR file (corrupt or truncated?): {err}"
+            f"{path} is not a readable OpenEXR file (corrupt or truncated?): {reason}"
         ) from err
     metadata = {}
     for key, value in header.items():
@@ -217,6 +219,11 @@ def read_exr(path: str | os.PathLike) -> ExrImage:
     return ExrImage(channels, metadata)
 
 
+#: The largest magnitude :func:`read_map` accepts: sums of squares over a 16384² map stay
+#: finite in float32 (a kilometre in nanometres; no displacement map comes near).
+MAP_LIMIT = 1e12
+
+
 def read_map(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
     """Read one single-channel map ``(H, W)`` float32: an EXR channel, a ``.npy`` array, or a
     greyscale PNG/JPEG/TIFF in [0, 1].
@@ -227,32 +234,91 @@ def read_map(path: str | os.PathLike, channel: str | None = None) -> np.ndarray:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: several channels and none named, an unknown channel, not 2-D, or a bad file.
+        TypeError: a ``.npy`` array that is not floating point.
+        ValueError: several channels and none named, an unknown channel, not 2-D, NaN or
+            infinite values or values beyond ±:data:`MAP_LIMIT`, or a bad file; the message
+            names the file.
     """
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        if not path.is_file():
-            raise FileNotFoundError(f"no such file: {path}")
+        data = _read_npy(path)
+    elif suffix != ".exr":
+        data = read_image(path, grey=True)
+    else:
+        image = read_exr(path)
+        names = list(image.channels)
+        if channel is None:
+            if len(names) != 1:
+                raise ValueError(
+                    f"{path} has {len(names)} channels {names}; expected one, or name the channel"
+                )
+            channel = names[0]
+        if channel not in image.channels:
+            raise ValueError(f"{path} has no channel {channel!r}; it has {names}")
+        data = image.channels[channel]
+    if data.size == 0:
+        raise ValueError(f"{path} holds an empty map of shape {data.shape}")
+    bad = int(np.count_nonzero(~np.isfinite(data)))
+    if bad:
+        raise ValueError(f"{path} holds {bad} NaN or infinite value(s); a map must be finite")
+    largest = float(np.max(np.abs(data)))
+    if largest > MAP_LIMIT:
+        raise ValueError(
+            f"{path} holds values up to {largest:.3g}; a map must lie within ±{MAP_LIMIT:g} "
+            "(float32 statistics of larger values overflow)"
+        )
+    return data
+
+
+def map_shape(path: str | os.PathLike) -> tuple[int, int]:
+    """The ``(H, W)`` of the map :func:`read_map` would return, from the file's header only (so
+    a batch can check its maps before reading any).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a readable map file.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        shape = _open_npy(path).shape
+    elif suffix == ".exr":
+        path = input_file(path, "EXR file")
         try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as err:
-            raise ValueError(f"{path} is not a readable .npy array: {err}") from err
-        if data.ndim != 2:
-            raise ValueError(f"{path} must hold a 2-D map, got shape {data.shape}")
-        if data.dtype.kind != "f":
-            raise TypeError(f"{path} must hold a floating-point map, got {data.dtype}")
-        return data.astype(np.float32)
-    if suffix != ".exr":
-        return read_image(path, grey=True)
-    image = read_exr(path)
-    names = list(image.channels)
-    if channel is None:
-        if len(names) != 1:
+            (x0, y0), (x1, y1) = OpenEXR.File(str(path), header_only=True).header()["dataWindow"]
+        except Exception as err:  # the bindings raise bare RuntimeError/IOError for bad files
             raise ValueError(
-                f"{path} has {len(names)} channels {names}; expected one, or name the channel"
-            )
-        channel = names[0]
-    if channel not in image.channels:
-        raise ValueError(f"{path} has no channel {channel!r}; it has {names}")
-    return image.channels[channel]
+                f"{path} is not a readable OpenEXR file (corrupt or truncated?): {err}"
+            ) from err
+        shape = (int(y1) - int(y0) + 1, int(x1) - int(x0) + 1)
+    else:
+        shape = image_size(path)
+    if len(shape) != 2:
+        raise ValueError(f"{path} must hold a 2-D map, got shape {shape}")
+    return int(shape[0]), int(shape[1])
+
+
+def _open_npy(path: Path) -> np.ndarray:
+    """A ``.npy`` file memory-mapped: a header declaring more data than the file holds fails
+    here, before anything is allocated."""
+    path = input_file(path, ".npy file")
+    try:
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+    except Exception as err:  # numpy's header parser raises many types for a bad header
+        raise ValueError(
+            f"{path} is not a readable .npy array (corrupt header or truncated?): "
+            f"{type(err).__name__}: {err}"
+        ) from err
+
+
+def _read_npy(path: Path) -> np.ndarray:
+    mapped = _open_npy(path)
+    if mapped.ndim != 2:
+        raise ValueError(f"{path} must hold a 2-D map, got shape {mapped.shape}")
+    if mapped.dtype.kind != "f":
+        raise TypeError(f"{path} must hold a floating-point map, got {mapped.dtype}")
+    try:
+        return np.array(mapped, dtype=np.float32)
+    except MemoryError as err:
+        raise ValueError(f"{path} holds a map of {mapped.shape}, more than memory holds") from err

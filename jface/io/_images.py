@@ -8,9 +8,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from PIL import Image, PngImagePlugin, UnidentifiedImageError
+from PIL import Image, PngImagePlugin
 
-from jface.io._files import atomic_path
+from jface.io._files import atomic_path, check_output, input_file
 
 
 def write_png(
@@ -20,11 +20,13 @@ def write_png(
     metadata: dict[str, Any] | None = None,
     protect: tuple[str | os.PathLike, ...] = (),
 ) -> Path:
-    """Write an (H, W) grey or (H, W, 3|4) colour image to PNG, atomically.
+    """Write an (H, W) grey or (H, W, 3|4) colour image to PNG (a path ending in ".png"),
+    atomically.
 
     Float images are taken to lie in [0, 1] (clipped); uint8 images are written as they are.
     ``metadata`` goes into a "jface" text chunk as JSON.
     """
+    path = check_output(path, (".png",), protect=protect)
     arr = np.asarray(image)
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] not in (3, 4)) or arr.size == 0:
         raise ValueError(f"image must be (H, W) or (H, W, 3|4), got shape {arr.shape}")
@@ -37,7 +39,6 @@ def write_png(
     info = PngImagePlugin.PngInfo()
     if metadata:
         info.add_text("jface", json.dumps(metadata))
-    path = Path(path)
     with atomic_path(path, protect=protect) as tmp:
         Image.fromarray(np.ascontiguousarray(arr)).save(tmp, format="PNG", pnginfo=info)
     return path
@@ -48,11 +49,10 @@ def read_image(path: str | os.PathLike, *, grey: bool = False) -> np.ndarray:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: not a readable image (corrupt or truncated).
+        ValueError: not a readable image (corrupt or truncated), or one that declares more
+            pixels than Pillow's decompression-bomb limit (``PIL.Image.MAX_IMAGE_PIXELS`` × 2).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such image file: {path}")
+    path = input_file(path, "image file")
     try:
         with Image.open(path) as img:
             img.load()
@@ -62,8 +62,31 @@ def read_image(path: str | os.PathLike, *, grey: bool = False) -> np.ndarray:
                 return np.asarray(img, dtype=np.float32)
             mode = "L" if grey or (img.mode in ("L", "LA", "1", "P") and _is_grey(img)) else "RGB"
             return np.asarray(img.convert(mode), dtype=np.float32) / 255.0
-    except (UnidentifiedImageError, OSError, SyntaxError) as err:
-        raise ValueError(f"{path} is not a readable image (corrupt or truncated?): {err}") from err
+    except Image.DecompressionBombError as err:
+        raise ValueError(f"{path} declares too many pixels to read safely: {err}") from err
+    except MemoryError as err:
+        raise ValueError(f"{path} declares an image larger than memory holds") from err
+    except Exception as err:  # Pillow's decoders raise many types for bad files
+        raise ValueError(
+            f"{path} is not a readable image (corrupt or truncated?): {type(err).__name__}: {err}"
+        ) from err
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """``(H, W)`` of an image file, from its header.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not a readable image.
+    """
+    path = input_file(path, "image file")
+    try:
+        with Image.open(path) as img:
+            return img.height, img.width
+    except Exception as err:  # Pillow raises many types for bad files
+        raise ValueError(
+            f"{path} is not a readable image (corrupt or truncated?): {type(err).__name__}: {err}"
+        ) from err
 
 
 def _is_grey(img: Image.Image) -> bool:

@@ -10,13 +10,16 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import os
+import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from jface.io._files import atomic_path, write_json
+from jface.io._files import atomic_path, check_output, input_file, write_json
 
 #: A landmark is a vertex id of the scan or a 3-D point.
 Landmark = int | tuple[float, float, float]
@@ -50,28 +53,46 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: unreadable, empty, a point cloud or a mesh without faces, or faces that
-            index missing vertices.
+        ValueError: unreadable, empty, a point cloud or a mesh without faces, faces that index
+            missing vertices, or a vertex or uv that is NaN or infinite (anywhere in the file:
+            dropping it would shift the ids of every vertex after it, which landmarks refer to).
     """
     import trimesh
 
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such mesh file: {path}")
+    path = input_file(path, "mesh file")
+    if path.suffix.lower() == ".obj":
+        _check_obj_numbers(path)
     try:
+        # unprocessed first: processing would drop non-finite vertices before they are seen
         loaded = trimesh.load(str(path), process=False)
-        if isinstance(loaded, trimesh.Scene):
-            parts = list(loaded.geometry.values())
-            meshes = [g for g in parts if isinstance(g, trimesh.Trimesh) and len(g.faces)]
-            loaded = trimesh.util.concatenate(meshes) if meshes else (parts[0] if parts else None)
-        if merge and isinstance(loaded, trimesh.Trimesh) and np.isfinite(loaded.vertices).all():
-            _merge_positions(loaded)
+        parts = list(loaded.geometry.values()) if isinstance(loaded, trimesh.Scene) else [loaded]
+    except MemoryError as err:
+        raise ValueError(f"{path} declares a mesh larger than memory holds (corrupt?)") from err
     except Exception as err:  # trimesh raises many types for bad files
         raise ValueError(f"{path} is not a readable mesh (corrupt or truncated?): {err}") from err
+    for part in parts:
+        part_vertices = np.asarray(getattr(part, "vertices", np.zeros((0, 3))), np.float64)
+        if part_vertices.ndim == 2 and len(part_vertices):
+            _check_finite(path, "vertex", part_vertices)
+    meshes = [g for g in parts if isinstance(g, trimesh.Trimesh) and len(g.faces)]
+    for part in meshes:  # before processing, which indexes the vertices with them
+        if part.faces.min() < 0 or part.faces.max() >= len(part.vertices):
+            raise ValueError(f"{path}: faces index vertices outside [0, {len(part.vertices)})")
+    if merge:
+        try:
+            for part in meshes:
+                part.process()
+                _merge_seams(part)
+        except Exception as err:  # trimesh's processing of a malformed mesh
+            raise ValueError(f"{path} is not a valid mesh: {err}") from err
+    if len(meshes) > 1:
+        loaded = trimesh.util.concatenate(meshes)
+    else:
+        loaded = meshes[0] if meshes else (parts[0] if parts else None)
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
-    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
     if vertices.ndim != 2 or len(vertices) == 0:
         raise ValueError(f"{path} holds no vertices: the mesh is empty")
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
     if faces.ndim != 2 or len(faces) == 0:
         raise ValueError(
             f"{path} has {len(vertices)} vertices but no faces (a point cloud?); "
@@ -79,23 +100,56 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
         )
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise ValueError(f"{path}: faces index vertices outside [0, {len(vertices)})")
-    if not np.all(np.isfinite(vertices)):
-        raise ValueError(f"{path}: vertex positions contain NaN or infinity")
     uv = None
     visual = getattr(loaded, "visual", None)
     raw_uv = getattr(visual, "uv", None) if visual is not None else None
     if raw_uv is not None and len(raw_uv) == len(vertices):
         uv = np.asarray(raw_uv, dtype=np.float64)
+        _check_finite(path, "uv", uv)
     return MeshData(vertices, faces, uv)
 
 
-def _merge_positions(mesh) -> None:
-    """Merge a trimesh's vertices by position; drop its UVs if that merged different ones."""
-    split = mesh.copy()
-    split.merge_vertices()  # UV and normal seams kept apart
+def _merge_seams(mesh) -> None:
+    """Merge a processed trimesh's vertices that share a position across UV and normal seams
+    (a scan split along its seams has cracks that rays slip through); drop the UVs if that
+    merged different ones."""
+    before = len(mesh.vertices)
     mesh.merge_vertices(merge_tex=True, merge_norm=True)
-    if len(split.vertices) != len(mesh.vertices):
-        mesh.visual = type(mesh.visual)()  # seams: no single UV per vertex
+    if len(mesh.vertices) != before:
+        mesh.visual = type(mesh.visual)()
+
+
+# A "v" or "vt" line with a number that may not be finite (nan, inf, or a huge exponent).
+_SUSPECT_OBJ_LINE = re.compile(rb"^[ \t]*(vt?)[ \t][^\n]*(?:nan|inf|e\+?0*\d{3})", re.I | re.M)
+
+
+def _check_obj_numbers(path: Path) -> None:
+    """Reject an OBJ with a non-finite ``v``/``vt`` value anywhere: trimesh's OBJ reader drops
+    vertices no face uses, so :func:`_check_finite` alone would not see them."""
+    with open(path, "rb") as handle:
+        text = handle.read()
+    for match in _SUSPECT_OBJ_LINE.finditer(text):
+        line = match.group(0).split(b"#")[0].split()
+        try:
+            values = [float(v) for v in line[1:]]
+        except ValueError:
+            continue  # not numbers at all: trimesh reports the file as unreadable
+        if not all(math.isfinite(v) for v in values):
+            number = text.count(b"\n", 0, match.start()) + 1
+            shown = match.group(0).decode(errors="replace").strip()
+            raise ValueError(
+                f"{path}, line {number}: {shown!r} is not finite; a mesh must not hold NaN or "
+                "infinite coordinates (fix or remove the vertex)"
+            )
+
+
+def _check_finite(path: Path, what: str, values: np.ndarray) -> None:
+    bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
+    if bad.size:
+        raise ValueError(
+            f"{path}: {bad.size} {what} value(s) are NaN or infinite (first: {what} {bad[0]}, "
+            f"{values[bad[0]].tolist()}); a mesh must be finite"
+        )
 
 
 def write_mesh(
@@ -120,10 +174,8 @@ def write_mesh(
     Raises:
         ValueError: unknown suffix, bad shapes, indices out of range or non-finite values.
     """
-    path = Path(path)
+    path = check_output(path, (".obj", ".ply"), protect=protect)
     suffix = path.suffix.lower()
-    if suffix not in (".obj", ".ply"):
-        raise ValueError(f"mesh path must end in .obj or .ply, got {path.name!r}")
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
@@ -188,7 +240,12 @@ def _write_ply(path: Path, vertices, faces, uv, comment: str) -> None:
 # --- landmarks ---------------------------------------------------------------------------------
 
 
-def read_landmarks(path: str | os.PathLike) -> dict[str, Landmark]:
+def read_landmarks(
+    path: str | os.PathLike,
+    *,
+    n_vertices: int | None = None,
+    names: Sequence[str] | None = None,
+) -> dict[str, Landmark]:
     """Read named landmarks from JSON or CSV.
 
     JSON: an object ``{"nose_tip": 1, "chin": [0.0, -9.4, 4.3], ...}`` (optionally nested under a
@@ -196,35 +253,53 @@ def read_landmarks(path: str | os.PathLike) -> dict[str, Landmark]:
     vertices) or a 3-D point. CSV: rows
     ``name,id`` or ``name,x,y,z``; a first row whose second field is not a number is a header.
 
+    Args:
+        path: the file.
+        n_vertices: the scan's vertex count, when known: ids must lie below it.
+        names: the landmark names expected (e.g. :data:`jface.mesh.LANDMARK_NAMES`), when
+            known: the file must name exactly these.
+
     Returns:
         name → vertex id (int) or point (3 floats), in file order.
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: unreadable file, duplicate names, or a value that is neither an id nor a
-            3-D point. (Missing and unknown names are checked against the template by
-            :func:`jface.mesh.landmark_points`.)
+        ValueError: unreadable file, duplicate names, or a value that is neither an id (a
+            non-negative integer below ``n_vertices``, or below 2³¹) nor a 3-D point of finite
+            float32 coordinates, or (with ``names``) missing or unknown names; the message
+            names the file and the landmark.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no such landmark file: {path}")
+    path = input_file(path, "landmark file")
     try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path} is not a readable text file: {err}") from err
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path} is not a UTF-8 text file: {err.reason}") from err
     is_csv = path.suffix.lower() == ".csv"
     pairs = _csv_pairs(path, text) if is_csv else _json_pairs(path, text)
+    limit = (_ID_LIMIT, "") if n_vertices is None else (int(n_vertices), " (the scan's vertices)")
     seen: dict[str, Landmark] = {}
     duplicates = []
     for name, value in pairs:
         if name in seen:
             duplicates.append(name)
-        seen[name] = _landmark_value(path, name, value)
+        seen[name] = _landmark_value(path, name, value, limit)
     if duplicates:
         raise ValueError(f"{path}: duplicate landmark name(s) {sorted(set(duplicates))}")
     if not seen:
         raise ValueError(f"{path} holds no landmarks")
+    if names is not None:
+        missing = [n for n in names if n not in seen]
+        unknown = [n for n in seen if n not in names]
+        if missing or unknown:
+            raise ValueError(
+                f"{path} must name exactly the {len(names)} landmarks {list(names)}; "
+                f"missing {missing}, unknown {unknown}"
+            )
     return seen
+
+
+_ID_LIMIT = 2**31  # vertex ids are int32 on the device
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def _json_pairs(path: Path, text: str) -> list[tuple[str, Any]]:
@@ -233,9 +308,13 @@ def _json_pairs(path: Path, text: str) -> list[tuple[str, Any]]:
 
     try:
         data = json.loads(text, object_pairs_hook=keep_pairs)
-    except json.JSONDecodeError as err:
+    except ValueError as err:  # JSONDecodeError, or an integer of more digits than Python reads
         raise ValueError(f"{path} is not valid JSON: {err}") from err
-    if isinstance(data, list) and len(data) == 1 and data[0][0] == "landmarks":
+    except RecursionError as err:
+        raise ValueError(f"{path} nests JSON too deeply to read") from err
+    # an object arrives as a list of (name, value) tuples; JSON arrays arrive as lists
+    nested = isinstance(data, list) and len(data) == 1 and isinstance(data[0], tuple)
+    if nested and data[0][0] == "landmarks":
         data = data[0][1]
     if not isinstance(data, list) or not all(isinstance(p, tuple) for p in data):
         raise ValueError(f"{path} must hold a JSON object of name → vertex id or [x, y, z]")
@@ -243,7 +322,10 @@ def _json_pairs(path: Path, text: str) -> list[tuple[str, Any]]:
 
 
 def _csv_pairs(path: Path, text: str) -> list[tuple[str, Any]]:
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    try:
+        rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    except csv.Error as err:
+        raise ValueError(f"{path} is not a readable CSV file: {err}") from err
     rows = [[c.strip() for c in r] for r in rows if not r[0].lstrip().startswith("#")]
     if rows and len(rows[0]) > 1 and not _is_number(rows[0][1]):
         rows = rows[1:]
@@ -268,27 +350,36 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def _landmark_value(path: Path, name: str, value: Any) -> Landmark:
-    what = f"{path}: landmark {name!r} must be a vertex id or three coordinates, got {value!r}"
+def _landmark_value(path: Path, name: str, value: Any, limit: tuple[int, str]) -> Landmark:
+    shown = repr(value) if len(repr(value)) <= 80 else repr(value)[:77] + "..."
+    what = f"{path}: landmark {name!r} must be a vertex id or three coordinates, got {shown}"
     if isinstance(value, bool):
         raise ValueError(what)
-    if isinstance(value, int):
-        return value
     if isinstance(value, str):
         try:
             number = float(value)
         except ValueError:
             raise ValueError(what) from None
-        if number != int(number):
+        if not math.isfinite(number) or number != round(number):
             raise ValueError(what)
-        return int(number)
+        value = int(number)
+    if isinstance(value, int):
+        if not 0 <= value < limit[0]:
+            raise ValueError(
+                f"{path}: landmark {name!r} is vertex id {shown}, outside [0, {limit[0]}){limit[1]}"
+            )
+        return value
     if isinstance(value, (list, tuple)) and len(value) == 3:
+        if not all(isinstance(c, int | float | str) and not isinstance(c, bool) for c in value):
+            raise ValueError(what)
         try:
             point = tuple(float(c) for c in value)
-        except (TypeError, ValueError):
+        except (ValueError, OverflowError):
             raise ValueError(what) from None
-        if not all(np.isfinite(point)):
-            raise ValueError(f"{path}: landmark {name!r} must be finite, got {value!r}")
+        if not all(math.isfinite(c) and abs(c) <= _FLOAT32_MAX for c in point):
+            raise ValueError(
+                f"{path}: landmark {name!r} must have finite float32 coordinates, got {shown}"
+            )
         return point  # type: ignore[return-value]
     raise ValueError(what)
 

@@ -133,8 +133,9 @@ def pso(
 
     Raises:
         TypeError: a non-callable ``loss_fn``, or one that does not return a scalar float.
-        ValueError: malformed bounds (wrong shape, non-finite, ``low >= high``), a bad count,
-            unknown topology/boundary, or a malformed ``cyclic`` mask.
+        ValueError: malformed bounds (wrong shape, non-finite, beyond float32,
+            ``low >= high``), a bad count, unknown topology/boundary, or a malformed ``cyclic``
+            mask.
     """
     key = _checks.key(key)
     if not callable(loss_fn):
@@ -174,6 +175,15 @@ def _check_bounds(bounds: Any) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"bounds must be (low, high), each of shape (P,), got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError("bounds must be finite")
+    # the swarm runs in float32 on (x - low) / (high - low): both must be float32 numbers
+    big = float(np.finfo(np.float32).max)
+    wide = np.flatnonzero((np.abs(arr).max(axis=0) > big) | (arr[1] - arr[0] > big))
+    if wide.size:
+        i = int(wide[0])
+        raise ValueError(
+            f"bounds must be float32 numbers whose span high - low is at most {big:.4g}, got "
+            f"low={arr[0, i]}, high={arr[1, i]} in dimension {i}"
+        )
     bad = np.flatnonzero(arr[0] >= arr[1])
     if bad.size:
         i = int(bad[0])

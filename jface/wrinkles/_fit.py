@@ -288,16 +288,34 @@ def _loss(image, target: TextureStats) -> Float[Array, ""]:
 
 
 def _bounds(names, d_range, overrides) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    unknown = sorted(set(overrides) - set(names))
+    if unknown:
+        raise ValueError(f"bounds name parameters that are not fitted: {unknown}")
     low, high, cyclic = [], [], []
     for name in names:
         field = name.split(".")[-1]
-        lo, hi = d_range if name == "d" else PARAMETER_RANGES[field]
+        lo, hi = allowed = d_range if name == "d" else PARAMETER_RANGES[field]
         if name in overrides:
-            lo, hi = overrides[name]
+            lo, hi = _search_range(name, overrides[name], allowed)
         low.append(lo)
         high.append(hi)
         cyclic.append(field == "theta")
     return np.array(low), np.array(high), np.array(cyclic)
+
+
+def _search_range(name: str, given: Any, allowed: tuple[float, float]) -> tuple[float, float]:
+    """A (low, high) override of a search range, within the range the parameter allows."""
+    where = "d_range" if name == "d" else "Table 1"
+    try:
+        lo, hi = (float(v) for v in given)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"bounds[{name!r}] must be (low, high), got {given!r}") from None
+    if not (allowed[0] <= lo < hi <= allowed[1]):
+        raise ValueError(
+            f"bounds[{name!r}] must satisfy {allowed[0]} <= low < high <= {allowed[1]} "
+            f"({where}), got ({lo}, {hi})"
+        )
+    return lo, hi
 
 
 def fit_wrinkles(
@@ -328,7 +346,8 @@ def fit_wrinkles(
         base: values of everything not fitted, ``(level 1, level 2)``; default
             ``WrinkleParams(d=0.035)`` and level 2 at half the distance with ``snoise`` at its
             minimum (one noise level). Level 2's α_d is always half of level 1's.
-        bounds: search ranges overriding Table 1 (``{name: (low, high)}``).
+        bounds: narrower search ranges (``{name: (low, high)}`` for fitted names), within the
+            parameter's Table 1 range (within ``d_range`` for ``"d"``).
         d_range: search range of α_d (fixes the pore capacities).
         n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
         n_steps: simulation steps per level (paper: 50).

@@ -59,13 +59,19 @@ PARAMETER_RANGES: dict[str, tuple[float, float]] = {
 
 
 def _as_param(x: Any) -> Array:
-    if isinstance(x, jax.Array | np.ndarray) and x.dtype.kind == "f":
-        return jnp.asarray(x, dtype=jnp.float32)
     if isinstance(x, bool) or not isinstance(
         x, int | float | np.integer | np.floating | list | tuple | jax.Array | np.ndarray
     ):
         raise TypeError(f"a WrinkleParams value must be a real number or a 2-D texture, got {x!r}")
-    return jnp.asarray(x, dtype=jnp.float32)
+    # eagerly even inside jit: a concrete value stays concrete and is checked against Table 1
+    with jax.ensure_compile_time_eval():
+        if isinstance(x, jax.Array):
+            return jnp.asarray(x, dtype=jnp.float32)
+        try:
+            with np.errstate(over="ignore"):  # beyond float32: ±inf, refused by the range check
+                return jnp.asarray(np.asarray(x, dtype=np.float32))
+        except OverflowError:  # a Python integer beyond any float
+            raise ValueError("a WrinkleParams value must be within float32's range") from None
 
 
 def _field(default: float):
@@ -143,7 +149,8 @@ class WrinkleParams(eqx.Module):
             if _checks.is_traced(value):
                 continue
             lo, hi = PARAMETER_RANGES[name]
-            vmin, vmax = float(np.min(value)), float(np.max(value))
+            values = np.asarray(value)  # numpy's reductions of a jax array would trace under jit
+            vmin, vmax = float(values.min()), float(values.max())
             # compare in float32, the values' precision (0.05 is stored as 0.0500000007)
             low, high = float(np.float32(lo)), float(np.float32(hi))
             if not (np.isfinite(vmin) and np.isfinite(vmax)) or vmin < low or vmax > high:
@@ -176,7 +183,22 @@ class WrinkleParams(eqx.Module):
         unknown = set(data) - set(_NAMES)
         if unknown:
             raise ValueError(f"unknown WrinkleParams field(s) {sorted(unknown)}; known: {_NAMES}")
-        return cls(**{name: np.asarray(value, dtype=np.float32) for name, value in data.items()})
+        values = {}
+        for name, value in data.items():
+            try:
+                values[name] = np.asarray(value, dtype=np.float64)
+            except OverflowError:  # an integer beyond any float: out of every range
+                lo, hi = PARAMETER_RANGES[name]
+                raise ValueError(
+                    f"WrinkleParams.{name} must be in [{lo}, {hi}] (Table 1), got a number "
+                    "too large for a float"
+                ) from None
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"WrinkleParams.{name} must be a number or a 2-D texture (rows of numbers, "
+                    f"all of one length), got {_checks.describe(value)}"
+                ) from None
+        return cls(**values)
 
 
 _NAMES = tuple(f.name for f in dataclasses.fields(WrinkleParams))
@@ -198,7 +220,11 @@ def load_params(path) -> list[WrinkleParams]:
     """
     from jface.io import read_json
 
-    return params_from_json(json.dumps(read_json(path)))
+    data = read_json(path)
+    try:
+        return params_from_json(json.dumps(data))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: {err}") from err
 
 
 def params_to_json(levels: WrinkleParams | list[WrinkleParams] | tuple[WrinkleParams, ...]) -> str:

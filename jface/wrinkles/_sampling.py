@@ -129,10 +129,12 @@ def default_capacity(d: Any, radius_map: Any = None, *, initial: int = 0) -> int
     """An upper bound of the pore count for the local distance ``d · R`` (hexagonal packing
     bound ``2/(√3 r²)`` per unit area, integrated over the map, plus a boundary margin)."""
     grid = (np.arange(64, dtype=np.float32) + 0.5) / 64
-    xy = jnp.asarray(np.stack(np.meshgrid(grid, grid), -1))
-    r = np.asarray(at(jnp.asarray(d, jnp.float32), xy, periodic=False), np.float64)
-    if radius_map is not None:
-        r = r * np.asarray(at(jnp.asarray(radius_map, jnp.float32), xy, periodic=False))
+    # concrete values (also closed over inside jit) are looked up eagerly: they size arrays
+    with jax.ensure_compile_time_eval():
+        xy = jnp.asarray(np.stack(np.meshgrid(grid, grid), -1))
+        r = np.asarray(at(jnp.asarray(d, jnp.float32), xy, periodic=False), np.float64)
+        if radius_map is not None:
+            r = r * np.asarray(at(jnp.asarray(radius_map, jnp.float32), xy, periodic=False))
     dens = float(np.mean(1.0 / r**2)) * 2.0 / math.sqrt(3.0)
     return math.ceil(1.05 * dens + 4.0 / float(np.min(r)) + 16) + int(initial)
 
@@ -181,21 +183,24 @@ def sample_pores(
             same conditions raise through ``equinox.error_if``.
     """
     key = _checks.key(key)
-    traced = _checks.is_traced(d) or _checks.is_traced(radius_map)
     d = _checks.float_array(d, "d", dtype=jnp.float32)
     if d.ndim not in (0, 2):
         raise ValueError(f"d must be a scalar or a 2-D texture (H, W), got {_checks.describe(d)}")
     lo, hi = PARAMETER_RANGES["d"]
-    if not _checks.is_traced(d) and (np.min(d) < np.float32(lo) or np.max(d) > np.float32(hi)):
+    # numpy copies of concrete values: numpy's reductions of a jax array would trace under jit
+    d_values = None if _checks.is_traced(d) else np.asarray(d)
+    low, high = np.float32(lo), np.float32(hi)
+    if d_values is not None and (d_values.min() < low or d_values.max() > high):
         raise ValueError(
             f"d (α_d) must be in [{lo}, {hi}] (Table 1), got values in "
-            f"[{float(np.min(d))}, {float(np.max(d))}]"
+            f"[{float(d_values.min())}, {float(d_values.max())}]"
         )
     if radius_map is not None:
         radius_map = _checks.float_array(radius_map, "radius_map", ndim=2, dtype=jnp.float32)
-        if not _checks.is_traced(radius_map) and float(np.min(radius_map)) <= 0:
+        if not _checks.is_traced(radius_map) and float(np.min(np.asarray(radius_map))) <= 0:
             raise ValueError(
-                f"radius_map must be positive everywhere, got minimum {float(np.min(radius_map))}"
+                "radius_map must be positive everywhere, got minimum "
+                f"{float(np.min(np.asarray(radius_map)))}"
             )
     if initial is not None:
         if not isinstance(initial, Pores):
@@ -204,6 +209,7 @@ def sample_pores(
             raise ValueError(
                 f"initial pores have periodic={initial.periodic}, but periodic={periodic}"
             )
+    traced = _checks.is_traced(d) or _checks.is_traced(radius_map)
     if radius_range is None:
         if traced:
             raise ValueError(
@@ -212,8 +218,8 @@ def sample_pores(
             )
         rmap = np.ones(()) if radius_map is None else np.asarray(radius_map)
         radius_range = (
-            float(np.min(d)) * float(np.min(rmap)),
-            float(np.max(d)) * float(np.max(rmap)),
+            float(d_values.min()) * float(np.min(rmap)),
+            float(d_values.max()) * float(np.max(rmap)),
         )
     r_lo = _checks.real(radius_range[0], "radius_range[0]", low=0.0, open_low=True)
     r_hi = _checks.real(radius_range[1], "radius_range[1]", low=r_lo)

@@ -223,7 +223,7 @@ def simulate(
             raise ValueError("weights must lie in [0, 1]")
     leaves = (params.dt, params.decay, graph.edge_count)
     if not any(_checks.is_traced(x) for x in leaves):
-        rate = float(np.max(params.dt)) * float(np.max(params.decay))
+        rate = float(np.max(np.asarray(params.dt))) * float(np.max(np.asarray(params.decay)))
         worst = rate * n_samples
         count = int(graph.edge_count)
         if count > 0 and worst > count:
