@@ -1,4 +1,4 @@
-"""The failure cases of issue 23 ("nothing lost, nothing stale, nothing silently wrong"), each run
+"""Failure cases of bad input ("nothing lost, nothing stale, nothing silently wrong"), each run
 as a user would, with the outcome as one JSON line per case.
 
 For every case: the exit status of ``jface`` (or the exception a Python call raised), the last

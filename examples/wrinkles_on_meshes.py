@@ -1,6 +1,5 @@
 """Micro wrinkles on real meshes (Weiss et al. 2023, Fig. 4 and §5): the MediaPipe canonical face
-(shipped in ``jface/data``) and the Lee Perry-Smith head scan (``../shared/data/meshes``; skipped
-when absent).
+and the Lee Perry-Smith head scan, both shipped in ``jface/data``.
 
 For each mesh: the radius map **R** from the UV stretch (pores evenly spaced on the surface), a
 two-level micro-wrinkle map synthesised in the mesh's UV atlas (not periodic), the mesh
@@ -11,7 +10,7 @@ Lee Perry-Smith's UVs are one unwrapped head (face in the middle, ears at the si
 the unit square; MediaPipe's UVs are the frontal face. Both have v up, the wrinkle maps y down the
 rows, hence the ``[::-1]`` before displacing.
 
-Run: ``python examples/wrinkles_on_meshes.py --out wrinkles_meshes [--size 2048] [--meshes DIR]``
+Run: ``python examples/wrinkles_on_meshes.py --out wrinkles_meshes [--size 2048]``
 Credits: "Infinite, 3D Head Scan" by Lee Perry-Smith (CC BY 3.0); MediaPipe (Apache-2.0).
 """
 
@@ -21,22 +20,19 @@ from pathlib import Path
 import jax
 import numpy as np
 
-import jface
-from jface import io, mesh, raster, render
+from jface import data, io, mesh, raster, render
 from jface.wrinkles import WrinkleParams, radius_map_from_mesh, synthesize
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "meshes"
 MESHES = {
     # name: (file, subdivisions before displacing, pore distance α_d, depth per map unit as a
     # fraction of the bounding-box diagonal, view yaw in degrees)
-    "mediapipe_face": (Path(jface.__file__).parent / "data" / "mediapipe_canonical_face.obj",
-                       3, 0.012, 0.006, 20.0),
-    "lee_perry_smith_head": (SHARED / "lee_perry_smith_head.obj", 1, 0.01, 0.0015, 30.0),
-}  # fmt: skip
+    "mediapipe_face": (data.path("mediapipe_canonical_face.obj"), 3, 0.012, 0.006, 20.0),
+    "lee_perry_smith_head": (data.path("lee_perry_smith_head.obj"), 1, 0.01, 0.0015, 30.0),
+}
 
 
 def wrinkle(name, path, subdivisions, d, depth, yaw, size, seed, out):
-    surface = io.read_mesh(path)
+    surface = io.read_mesh(path, uv_seams=True)  # one UV per vertex: split at the seams
     # R clipped to [0.4, 2.5]: the scan's neck cap is squashed 6× in UV, which would multiply
     # the pore count (and the sampler's grid) there for a region nobody looks at
     radius = radius_map_from_mesh(surface, 512, limits=(0.4, 2.5))
@@ -72,19 +68,9 @@ def main() -> None:
     parser.add_argument("--out", default="wrinkles_meshes", help="output folder")
     parser.add_argument("--size", type=int, default=2048, help="map side in pixels")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--meshes",
-        type=Path,
-        default=SHARED,
-        help="folder of lee_perry_smith_head.obj (default ../shared/data/meshes)",
-    )
     args = parser.parse_args()
     out = Path(args.out)
     for name, (path, subdivisions, d, depth, yaw) in MESHES.items():
-        path = path if path.parent != SHARED else args.meshes / path.name
-        if not path.is_file():
-            print(f"{name}: {path} not found (see ../shared/data/README.md); skipped")
-            continue
         wrinkle(name, path, subdivisions, d, depth, yaw, args.size, args.seed, out)
 
 

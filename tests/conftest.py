@@ -1,5 +1,7 @@
 """Strict numerics for every test: float64 available, strict dtype promotion, seeded keys."""
 
+from pathlib import Path
+
 import jax
 import numpy as np
 import pytest
@@ -26,6 +28,17 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
     _, cand = cKDTree(tri.mean(axis=1)).query(points, k=16)
     q = trimesh.triangles.closest_point(tri[cand.ravel()], np.repeat(points, 16, axis=0))
     return np.linalg.norm(q - np.repeat(points, 16, axis=0), axis=1).reshape(-1, 16).min(axis=1)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_code():
+    """Drop JAX's compiled executables after a module once the process holds many memory
+    mappings: each executable keeps some, and past Linux's vm.max_map_count (65,530 by default)
+    the next compilation crashes the interpreter. Below that, modules keep sharing compilations."""
+    yield
+    maps = Path("/proc/self/maps")
+    if maps.exists() and maps.read_text().count("\n") > 30_000:
+        jax.clear_caches()
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Bad input on every command (issue 23): an input named as output, corrupt, truncated and empty
+"""Bad input on every command: an input named as output, corrupt, truncated and empty
 files of every kind jface reads, wrong shapes, non-finite and huge values, folders and unwritable
 paths as outputs, reruns after an edit, and a kill during a write.
 

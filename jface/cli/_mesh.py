@@ -71,7 +71,7 @@ def _views(vertices, faces, pose: np.ndarray, center, extent: float, size: int) 
 
 def check_face_outputs(out: Path, fmt: str) -> None:
     """Refuse, before any work, a face folder output that would replace an input face."""
-    for name in (f"base.{fmt}", "displacement.exr", "hierarchy.npz"):
+    for name in (f"base.{fmt}", "displacement.exr", "hierarchy.npz", "filled.png"):
         io.check_output(out / name)
 
 
@@ -133,22 +133,30 @@ def _remesh(args: argparse.Namespace) -> None:
     )
     seconds = time.perf_counter() - start
     rates = [round(float(r), 5) for r in np.asarray(result.hit_rate)]
+    filled = np.asarray(result.filled)
     meta = io.provenance(
         source=Path(args.scan).name,
         landmarks=Path(args.landmarks).name,
         schedule=[args.linear, args.loop, args.smooth],
         fit=args.fit,
         hit_rates=rates,
+        filled_fraction=round(float(np.mean(filled > 0.5)), 5),
         image_convention="row 0 = v 1 (forehead); u left to right = subject's right to left",
     )
     out = Path(args.out_dir)
     write_face(out, result, meta, args.format, protect=(args.scan, args.landmarks))
+    # Where rays missed the scan the image is a membrane fill: shown in red over the relief.
+    shaded = np.asarray(render.shade(result.image))[..., None]
+    red = np.asarray([1.0, 0.15, 0.1])
+    tinted = shaded * (1 - filled[..., None]) + red * filled[..., None]
+    io.write_png(out / "filled.png", tinted, metadata=meta)
     missed = int(np.sum(np.asarray(result.missed)))
     print(
         f"remeshed {Path(args.scan).name} in {seconds:.1f} s: base mesh "
         f"{result.base.faces.shape[0]} triangles, displacement {result.image.shape[0]}×"
-        f"{result.image.shape[1]}; hit rates per level {rates} ({missed} base rays missed, "
-        f"filled); written to {out}/"
+        f"{result.image.shape[1]}; hit rates per level {rates}; {missed} base rays missed the "
+        f"scan, {np.mean(filled > 0.5):.2%} of the image filled (red in filled.png); written "
+        f"to {out}/"
     )
 
 

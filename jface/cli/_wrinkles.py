@@ -207,7 +207,7 @@ def _render(args: argparse.Namespace) -> None:
     base = read_map(args.base) if args.base else None
     if base is not None and base.shape != (args.size, args.size):
         raise ValueError(f"--base is {base.shape}, expected ({args.size}, {args.size}) (--size)")
-    mesh = read_mesh(args.mesh) if args.mesh else None
+    mesh = read_mesh(args.mesh, uv_seams=True) if args.mesh else None
     radius_map = None
     if mesh is not None:
         if mesh.uv is None:

@@ -39,7 +39,7 @@ class MeshData(NamedTuple):
     uv: np.ndarray | None = None
 
 
-def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
+def read_mesh(path: str | os.PathLike, *, merge: bool = True, uv_seams: bool = False) -> MeshData:
     """Read a triangle mesh (OBJ, PLY, STL, OFF, GLB, ...) through trimesh.
 
     Args:
@@ -47,6 +47,8 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
         merge: merge vertices that share a position, texture and normal seams included (a scan
             split along its UV seams has cracks that rays slip through). UVs are kept only when
             every vertex then has exactly one.
+        uv_seams: with ``merge``, keep vertices apart where their UVs differ, so a UV-mapped
+            mesh keeps one UV per vertex (for texturing, radius maps, displacement by UV).
 
     Returns:
         :class:`MeshData` (quads and polygons are triangulated by trimesh).
@@ -82,7 +84,8 @@ def read_mesh(path: str | os.PathLike, *, merge: bool = True) -> MeshData:
         try:
             for part in meshes:
                 part.process()
-                _merge_seams(part)
+                if not uv_seams:
+                    _merge_seams(part)
         except Exception as err:  # trimesh's processing of a malformed mesh
             raise ValueError(f"{path} is not a valid mesh: {err}") from err
     if len(meshes) > 1:
