@@ -26,6 +26,10 @@ _FLOOR = 1e-4
 #: than 20% weigh less and less, so a few tiles that cannot be reached (far-field filter
 #: leakage into flat tiles) do not take the steps that bring the bulk within a few percent.
 _ROBUST = 0.2
+#: L-BFGS steps per polish round, and the log-error within which 95% of the tiles must lie for
+#: the polish to stop early.
+_ROUND = 50
+_SETTLED = 0.005
 
 
 def synthesize(
@@ -203,14 +207,17 @@ def _log_errors(image, target, filters, pad):
 
 
 def _polish(image, target, pad, n_steps):
-    """Minimise a robust loss of the tile deviations' log-errors (L-BFGS), preconditioned.
+    """Minimise a robust loss of the tile deviations' log-errors (L-BFGS), preconditioned, in
+    rounds of at most :data:`_ROUND` steps until ``n_steps`` are spent or the tiles are settled
+    (95% of them within :data:`_SETTLED` of their targets): maps that the iterations already
+    brought there (stationary textures, most scans) skip the polish.
 
-    The unknown ``y`` moves the image by ``B^T D B y``: its pyramid coefficients ``B y`` scaled
-    by ``D``, the deviation of their band and tile in the image being polished (blended between
-    tile centres), and collapsed (``B^T``) without a low-pass, so the start's low-pass stays as
-    it is. Without ``D`` a tile's curvature grows as ``1 / σ²``: flat tiles beside rough ones
-    would take almost all of the steps. With it every tile sees about the same curvature. A
-    result that is not better than the start is not taken.
+    Each round's unknowns ``y`` move the image by ``B^T D B y``: its pyramid coefficients
+    ``B y`` scaled by ``D``, the deviation of their band and tile in the image being polished
+    (blended between tile centres), and collapsed (``B^T``) without a low-pass, so the start's
+    low-pass stays as it is. Without ``D`` a tile's curvature grows as ``1 / σ²``: flat tiles
+    beside rough ones would take almost all of the steps. With it every tile sees about the same
+    curvature. A round that does not lower the loss is not taken.
     """
     # In JAX's default float dtype: optimistix's L-BFGS keeps part of its state in it.
     work = jax.dtypes.canonicalize_dtype(jnp.float64)
@@ -218,11 +225,6 @@ def _polish(image, target, pad, n_steps):
     padded = tuple(n + a + b for n, a, b in zip(shape, pad[::2], pad[1::2], strict=True))
     filters = pyramid.make_filters(padded, target.n_scales, target.n_orientations, work.name)
     target = jax.tree.map(lambda x: x.astype(work), target)
-    start = jax.lax.stop_gradient(image).astype(work)
-
-    highpass, bands, lowpass = pyramid.analyse_spectrum(
-        filters, jnp.fft.rfft2(pyramid.pad_image(start, pad))
-    )
 
     def amplitude(band, scale):
         top, left, h, w = pyramid.valid_window(shape, pad, scale)
@@ -231,26 +233,47 @@ def _polish(image, target, pad, n_steps):
         bottom, right = band.shape[0] - top - h, band.shape[1] - left - w
         return jnp.pad(field, ((top, bottom), (left, right)), mode="edge")
 
-    scales = [amplitude(highpass, -1)] + [
-        jnp.stack([amplitude(b, s) for b in band]) for s, band in enumerate(bands)
-    ]
-
-    def move(y):
-        high, parts, _ = pyramid.analyse_spectrum(filters, jnp.fft.rfft2(pyramid.pad_image(y, pad)))
-        parts = tuple(p * d for p, d in zip(parts, scales[1:], strict=True))
-        spectrum = pyramid.synthesise_spectrum(
-            filters, high * scales[0], parts, jnp.zeros_like(lowpass)
+    def polish_round(start, n):
+        highpass, bands, lowpass = pyramid.analyse_spectrum(
+            filters, jnp.fft.rfft2(pyramid.pad_image(start, pad))
         )
-        moved = jnp.fft.irfft2(spectrum, s=padded)
-        return moved[pad[0] : pad[0] + shape[0], pad[2] : pad[2] + shape[1]]
+        scales = [amplitude(highpass, -1)] + [
+            jnp.stack([amplitude(b, s) for b in band]) for s, band in enumerate(bands)
+        ]
 
-    def loss(y, _):
-        errors = _log_errors(start + move(y), target, filters, pad) / _ROBUST
-        return jnp.mean(jnp.log1p(errors * errors))
+        def move(y):
+            spectrum = jnp.fft.rfft2(pyramid.pad_image(y, pad))
+            high, parts, _ = pyramid.analyse_spectrum(filters, spectrum)
+            parts = tuple(p * d for p, d in zip(parts, scales[1:], strict=True))
+            spectrum = pyramid.synthesise_spectrum(
+                filters, high * scales[0], parts, jnp.zeros_like(lowpass)
+            )
+            moved = jnp.fft.irfft2(spectrum, s=padded)
+            return moved[pad[0] : pad[0] + shape[0], pad[2] : pad[2] + shape[1]]
 
-    zero = jnp.zeros(shape, work)
-    solver = optx.LBFGS(rtol=1e-12, atol=1e-12)
-    solution = optx.minimise(loss, solver, zero, max_steps=n_steps, throw=False)
-    polished = (start + move(solution.value)).astype(image.dtype)
-    better = loss(solution.value, None) <= loss(zero, None)
-    return jnp.where(better & jnp.all(jnp.isfinite(polished)), polished, image)
+        def loss(y, _):
+            errors = _log_errors(start + move(y), target, filters, pad) / _ROBUST
+            return jnp.mean(jnp.log1p(errors * errors))
+
+        zero = jnp.zeros(shape, work)
+        solver = optx.LBFGS(rtol=1e-12, atol=1e-12)
+        solution = optx.minimise(loss, solver, zero, max_steps=n, throw=False)
+        polished = start + move(solution.value)
+        better = loss(solution.value, None) <= loss(zero, None)
+        return jnp.where(better & jnp.all(jnp.isfinite(polished)), polished, start)
+
+    n_rounds = -(-n_steps // _ROUND)
+    per_round = -(-n_steps // n_rounds)
+
+    def unsettled(state):
+        current, done = state
+        errors = jnp.abs(_log_errors(current, target, filters, pad))
+        return (done < n_rounds) & (jnp.quantile(errors, 0.95) > _SETTLED)
+
+    def step(state):
+        current, done = state
+        return polish_round(current, per_round), done + 1
+
+    start = jax.lax.stop_gradient(image).astype(work)
+    polished, _ = jax.lax.while_loop(unsettled, step, (start, jnp.asarray(0)))
+    return polished.astype(image.dtype)
