@@ -1,9 +1,11 @@
 """A population of remeshed faces for the Golovinskiy et al. 2006 application examples.
 
 Shapes: ICT-FaceKit identities (real light-stage face shapes; MIT licence, "ICT-FaceKit, USC
-Institute for Creative Technologies"), from ``../shared/data/ict_facekit/``, each a random mix of
-the 100 identity modes, remeshed onto the 21-point marker template with :func:`jface.mesh.remesh`
-(marker mesh + offset levels + base mesh + displacement image).
+Institute for Creative Technologies"), from the subset shipped with jface
+(:func:`jface.data.ict_face_model`, 10 identity modes) or the full face area given with ``--ict``
+(``ict_face_area.npz``, 100 modes), each a random mix of the identity modes, remeshed onto the
+21-point marker template with :func:`jface.mesh.remesh` (marker mesh + offset levels + base mesh
++ displacement image).
 
 Fine detail: the ICT meshes are too coarse (3 mm edges) to carry pores or wrinkles, and the
 paper's scans are not public, so each face's displacement image gets fine detail measured from
@@ -22,11 +24,8 @@ import numpy as np
 from scipy import ndimage
 from skimage import data
 
+from jface import data as jface_data
 from jface import detail, io, mesh, raster, tiles
-
-ICT_FILE = (
-    Path(__file__).resolve().parents[2] / "shared" / "data" / "ict_facekit" / "ict_face_area.npz"
-)
 
 
 def _texture_detail(rng: np.random.Generator, texture: np.ndarray, size: int) -> np.ndarray:
@@ -45,12 +44,10 @@ def population(
     image_size: int = 512,
     schedule=(2, 2, 3),
     seed: int = 0,
-    ict: str | Path = ICT_FILE,
+    ict: str | None = None,
 ) -> tuple[list[detail.Face], list[dict]]:
     """Remeshed ICT identities with texture detail; returns the faces and their records."""
-    if not Path(ict).is_file():
-        raise SystemExit(f"needs the ICT-FaceKit data {ict} (see ../shared/data/README.md)")
-    ict = np.load(ict)
+    ict = jface_data.ict_face_model() if ict is None else dict(np.load(ict))
     neutral, triangles = ict["vertices"].astype(np.float64), ict["faces"]
     modes = ict["identity_deltas"].astype(np.float64)
     gravel = data.gravel().astype(np.float64) / 255.0

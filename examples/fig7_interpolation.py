@@ -18,7 +18,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _ict_population import ICT_FILE, front_view, population, write_detailed
+from _ict_population import front_view, population, write_detailed
 
 from jface import detail, io, raster, render
 
@@ -29,7 +29,9 @@ def main() -> None:
     parser.add_argument("--faces", type=int, default=8)
     parser.add_argument("--size", type=int, default=512, help="displacement image size")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--ict", default=str(ICT_FILE), help="ict_face_area.npz")
+    parser.add_argument(
+        "--ict", help="the full ICT-FaceKit face area (ict_face_area.npz); default: jface's subset"
+    )
     args = parser.parse_args()
     out = Path(args.out)
     faces, records = population(args.faces, 0, image_size=args.size, seed=args.seed, ict=args.ict)

@@ -18,7 +18,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _ict_population import ICT_FILE, front_view, population
+from _ict_population import front_view, population
 
 from jface import detail, io, raster, render
 
@@ -28,7 +28,9 @@ def main() -> None:
     parser.add_argument("--out", default="fig8")
     parser.add_argument("--size", type=int, default=512, help="displacement image size")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--ict", default=str(ICT_FILE), help="ict_face_area.npz")
+    parser.add_argument(
+        "--ict", help="the full ICT-FaceKit face area (ict_face_area.npz); default: jface's subset"
+    )
     args = parser.parse_args()
     out = Path(args.out)
     faces, records = population(4, 4, image_size=args.size, seed=args.seed, ict=args.ict)

@@ -19,7 +19,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _ict_population import ICT_FILE, front_view, population, write_detailed
+from _ict_population import front_view, population, write_detailed
 
 from jface import detail, io, raster, render
 
@@ -31,7 +31,9 @@ def main() -> None:
     parser.add_argument("--levels", type=int, default=3, help="coarse levels kept (1-5)")
     parser.add_argument("--n-iter", type=int, default=24)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--ict", default=str(ICT_FILE), help="ict_face_area.npz")
+    parser.add_argument(
+        "--ict", help="the full ICT-FaceKit face area (ict_face_area.npz); default: jface's subset"
+    )
     args = parser.parse_args()
     out = Path(args.out)
     (young, old), records = population(1, 1, image_size=args.size, seed=args.seed, ict=args.ict)

@@ -68,22 +68,24 @@ def real_scan(out: Path, before: Path | None, size: int) -> None:
         base = io.read_mesh(before / "base.obj", merge=False)
         image = io.read_map(before / "displacement.exr")
         old = mesh.displace(mesh.Mesh(base.vertices, base.faces, base.uv), image)
-        rows.append(("before (jface 0.1.0 at f525ce4)", old, image, None))
+        rows.append(("earlier jface", old, image, None))
     detailed = mesh.displace(result.base, result.image)
     rows.append(("now", detailed, np.asarray(result.image), np.asarray(result.filled)))
     scan_view = view(scan.vertices, scan.faces)
-    fig, axes = plt.subplots(len(rows), 4, figsize=(16, 4.3 * len(rows)), squeeze=False)
+    fig, axes = plt.subplots(
+        len(rows), 4, figsize=(16, 4.4 * len(rows)), squeeze=False, layout="constrained"
+    )
     for (label, shape, image, filled), row in zip(rows, axes, strict=True):
         gap = 100 * _distances(np.asarray(shape.vertices, np.float64)[::13], scan) / diagonal
         row[0].imshow(scan_view, cmap="gray", vmin=0, vmax=1)
         row[0].set_title("scan (Lee Perry-Smith)")
         row[1].imshow(view(shape.vertices, shape.faces), cmap="gray", vmin=0, vmax=1)
         row[1].set_title(
-            f"{label}: detailed mesh\nto scan: p99 {np.percentile(gap, 99):.3f}%, "
-            f"max {gap.max():.2f}% of the diagonal"
+            f"detailed mesh, {label}\nto scan: p99 {np.percentile(gap, 99):.3f}%, "
+            f"max {gap.max():.2f}% of diag."
         )
         row[2].imshow(render.shade(image), cmap="gray", vmin=0, vmax=1)
-        row[2].set_title(f"{label}: displacement image (shaded)")
+        row[2].set_title(f"displacement image, {label}")
         if filled is None:
             row[3].axis("off")
         else:
@@ -94,14 +96,15 @@ def real_scan(out: Path, before: Path | None, size: int) -> None:
             ax.set_xticks([])
             ax.set_yticks([])
     fig.suptitle("Remeshing a real head scan (Golovinskiy et al. 2006, §2.2)")
-    fig.tight_layout()
     fig.savefig(out / "mesh" / "real_scan.png", dpi=80)
     plt.close(fig)
 
 
 def heterogeneous_synthesis(out: Path, size: int) -> None:
     maps = data.heterogeneous_maps(size)
-    fig, axes = plt.subplots(len(maps), 6, figsize=(20, 3.6 * len(maps)), squeeze=False)
+    fig, axes = plt.subplots(
+        len(maps), 6, figsize=(20, 3.6 * len(maps)), squeeze=False, layout="constrained"
+    )
     norm = LogNorm(1e-3, 10.0)
     key = jax.random.key(0)
     for (name, image), row in zip(maps.items(), axes, strict=True):
@@ -111,7 +114,7 @@ def heterogeneous_synthesis(out: Path, size: int) -> None:
         panels = [("original", image), ("smoothed (no 3 finest bands)", smooth)]
         errors = []
         for label, settings in (
-            ("paper: 12 plain iterations", {"n_iter": 12, "memory": 0, "n_polish": 0}),
+            ("paper, 12 plain iterations", {"n_iter": 12, "memory": 0, "n_polish": 0}),
             ("jface defaults", {}),
         ):
             result = detail.synthesize(key, smooth, stats, **settings)
@@ -122,14 +125,14 @@ def heterogeneous_synthesis(out: Path, size: int) -> None:
                     result,
                 )
             )
-            errors.append((label, error.max(axis=0)))
+            errors.append((label.split(",")[0], error.max(axis=0)))
         for ax, (label, panel) in zip(row[:4], panels, strict=True):
             ax.imshow(render.shade(panel), cmap="gray", vmin=0, vmax=1)
             ax.set_title(label, fontsize=10)
         for ax, (label, error) in zip(row[4:], errors, strict=True):
             shown = ax.imshow(np.maximum(error, 1e-3), cmap="viridis", norm=norm)
-            ax.set_title(f"{label}:\nlargest per-tile error over the bands", fontsize=10)
-        fig.colorbar(shown, ax=row[4:], fraction=0.03, label="|σ − τ| / τ")
+            ax.set_title(f"{label}: per-tile error\n(largest over the bands)", fontsize=10)
+        fig.colorbar(shown, ax=row[4:], fraction=0.05, label="|σ − τ| / τ")
         row[0].set_ylabel(name, fontsize=13)
         for ax in row:
             ax.set_xticks([])

@@ -76,7 +76,8 @@ def synthesize(
         target: statistics to reach (:func:`jface.detail.analyze`, a group mean, ...).
         n_iter: number of build–match–collapse iterations.
         memory: earlier iterates that Anderson acceleration combines (0: plain iteration).
-        n_polish: L-BFGS steps on the statistics after the iterations (0: none; "std" only).
+        n_polish: at most this many L-BFGS steps on the statistics after the iterations, in
+            rounds that stop once the tiles are settled (0: none; "std" only).
         noise: standard deviation of the added Gaussian noise, relative to the detail amplitude
             of the target (:meth:`DetailStats.detail_rms`); 0 adds none.
         method: "std" matches standard deviations (the paper's reduced statistics), "histogram"
