@@ -166,3 +166,20 @@ def test_synthesis_converges_on_heterogeneous_real_maps(maps, name, key):
     )
     print(f"{name}: median {np.median(error):.4f}, p95 {np.percentile(error, 95):.4f}")
     assert np.median(error) <= 0.01 and np.percentile(error, 95) <= 0.05
+
+
+def test_synthesis_puts_each_tiles_statistics_in_its_tile(key):
+    """A known answer: a target whose left half is real gravel and whose right half is the same
+    gravel at 2% of the amplitude. Re-synthesised from its own 8×8 statistics, every tile lands
+    on its own target, the tiles on either side of the step included: a blend that leaks one
+    half's gain into the other (weights off by half a tile, a grown-tile rule) misses by tens of
+    percent there (the paper's 12 iterations: median 25%, 95th percentile 76%)."""
+    crop = np.asarray(data.gravel(), np.float32)[:128, :128]
+    crop = (crop - crop.mean()) / crop.std()
+    image = jnp.asarray(np.concatenate([crop[:, :64], 0.02 * crop[:, 64:]], axis=1))
+    stats = detail.analyze(image, grid=8)
+    smooth = detail.remove_detail(image, n_bands=3)
+    synthesised = detail.synthesize(key, smooth, stats)
+    error = np.asarray(detail.stats_error(detail.analyze(synthesised, grid=8), stats))
+    assert np.median(error) <= 0.01 and np.percentile(error, 95) <= 0.05
+    assert error[..., 3:5].max() <= 0.1  # the two tile columns beside the step
