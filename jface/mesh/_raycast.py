@@ -133,18 +133,25 @@ def exterior(
     u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
     v = np.cross(normal, u)
     directions = cap[None, :, :1] * u[:, None] + cap[None, :, 1:2] * v[:, None]
-    directions = (directions + cap[None, :, 2:] * normal[:, None]).reshape(-1, 3)
+    directions = directions + cap[None, :, 2:] * normal[:, None]
     # Start off the surface (farther than the casters' own start offset of 1e-3 edges), so the
     # triangle does not occlude itself.
     origins = index.centroids[ids] + 1e-2 * index.edge_length * normal
-    origins = np.repeat(origins, n_directions, axis=0)
-    reach = np.full(len(origins), float(length))
-    if index.method == "embree":
-        forward = _cast_embree(index, origins, directions).forward
-    else:
-        forward = _cast_kdtree(index, origins, directions, reach, facing=False).forward
-    escaped = ~(np.abs(forward) <= reach)
-    out[ids] = escaped.reshape(len(ids), n_directions).any(axis=1)
+    # One direction at a time, for the triangles not yet seen to escape: on skin most escape
+    # along their normal, so the cost is about one ray per triangle, not n_directions.
+    escaped = np.zeros(len(ids), bool)
+    for j in range(n_directions):
+        todo = np.flatnonzero(~escaped)
+        if not len(todo):
+            break
+        o, d = origins[todo], directions[todo, j]
+        if index.method == "embree":
+            forward, _ = _first_embree(index, o, d)
+        else:
+            reach = np.full(len(todo), float(length))
+            forward = _cast_kdtree(index, o, d, reach, facing=False).forward
+        escaped[todo] = ~(np.abs(forward) <= length)
+    out[ids] = escaped
     return out
 
 
@@ -219,15 +226,24 @@ def _cast_embree(index: ScanIndex, o: np.ndarray, d: np.ndarray) -> _FirstHits:
     eps = 1e-3 * index.edge_length
     out = []
     for sign in (1.0, -1.0):
-        t = np.full(len(o), sign * np.inf)
-        which = np.full(len(o), -1)
-        tri, ray, loc = index._embree.intersects_id(
-            o - eps * sign * d, sign * d, multiple_hits=False, return_locations=True
-        )
-        t[ray] = np.einsum("ij,ij->i", loc - o[ray], d[ray])
-        which[ray] = tri
-        out += [t, which]
+        t, which = _first_embree(index, o - eps * sign * d, sign * d)
+        out += [sign * (t - eps), which]
     return _FirstHits(*out)
+
+
+def _first_embree(index: ScanIndex, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Embree's first triangle along each ray ``o + t·d``, ``t >= 0`` (-1 where none), and
+    ``t`` (+inf where none) from the triangle's plane in float64: Embree itself works in
+    float32."""
+    which = index._embree.intersects_first(o, d)
+    t = np.full(len(o), np.inf)
+    hit = which >= 0
+    f = which[hit]
+    normal = index.normals[f]
+    t[hit] = np.einsum("ij,ij->i", normal, index.v0[f] - o[hit]) / np.einsum(
+        "ij,ij->i", normal, d[hit]
+    )
+    return t, which
 
 
 def _cast_kdtree(
