@@ -23,6 +23,7 @@ Two casters give the same answer:
 
 from __future__ import annotations
 
+import functools
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -58,28 +59,13 @@ class ScanIndex:
         self.normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
         edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1)
         self.edge_length = float(edges.mean())
-        from scipy.spatial import cKDTree
 
         self.centroids = tri.mean(axis=1)
         self.v0 = np.ascontiguousarray(tri[:, 0])
         self.e1 = np.ascontiguousarray(tri[:, 1] - tri[:, 0])
         self.e2 = np.ascontiguousarray(tri[:, 2] - tri[:, 0])
-        radii = np.linalg.norm(tri - self.centroids[:, None], axis=-1).max(axis=1)
-        self.radius = float(radii.max())
-        self.tree = cKDTree(self.centroids)
-        # Triangles grouped by size (factors of 2), one tree each: a query around a ray only
-        # pays for the largest triangle of each group, not of the whole scan.
-        size_class = np.floor(np.log2(np.maximum(radii, 1e-300) / max(radii.min(), 1e-300)))
-        size_class = np.minimum(size_class.astype(np.int64), 7)
-        self.groups = []
-        pending: list[np.ndarray] = []
-        classes = np.unique(size_class)
-        for i, c in enumerate(classes):  # merge small groups into the next larger size
-            pending.append(np.flatnonzero(size_class == c))
-            if sum(map(len, pending)) >= 0.05 * len(radii) or i == len(classes) - 1:
-                ids = np.concatenate(pending)
-                self.groups.append((ids, cKDTree(self.centroids[ids]), float(radii[ids].max())))
-                pending = []
+        self._radii = np.linalg.norm(tri - self.centroids[:, None], axis=-1).max(axis=1)
+        self.radius = float(self._radii.max())
         self._embree = None
         if self.method == "embree":
             import trimesh
@@ -87,6 +73,33 @@ class ScanIndex:
 
             mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
             self._embree = RayMeshIntersector(mesh)
+
+    @functools.cached_property
+    def tree(self):
+        """A k-d tree of the triangle centroids (built when first needed: Embree rarely does)."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.centroids)
+
+    @functools.cached_property
+    def groups(self) -> list[tuple[np.ndarray, object, float]]:
+        """Triangles grouped by size (factors of 2), one k-d tree each: a query around a ray
+        only pays for the largest triangle of each group, not of the whole scan."""
+        from scipy.spatial import cKDTree
+
+        radii = self._radii
+        size_class = np.floor(np.log2(np.maximum(radii, 1e-300) / max(radii.min(), 1e-300)))
+        size_class = np.minimum(size_class.astype(np.int64), 7)
+        groups = []
+        pending: list[np.ndarray] = []
+        classes = np.unique(size_class)
+        for i, c in enumerate(classes):  # merge small groups into the next larger size
+            pending.append(np.flatnonzero(size_class == c))
+            if sum(map(len, pending)) >= 0.05 * len(radii) or i == len(classes) - 1:
+                ids = np.concatenate(pending)
+                groups.append((ids, cKDTree(self.centroids[ids]), float(radii[ids].max())))
+                pending = []
+        return groups
 
     def subset(self, keep: np.ndarray) -> ScanIndex:
         """The same scan restricted to the triangles of the mask ``keep``, normals oriented as
@@ -132,8 +145,6 @@ def exterior(
     u = np.cross(normal, helper)
     u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
     v = np.cross(normal, u)
-    directions = cap[None, :, :1] * u[:, None] + cap[None, :, 1:2] * v[:, None]
-    directions = directions + cap[None, :, 2:] * normal[:, None]
     # Start off the surface (farther than the casters' own start offset of 1e-3 edges), so the
     # triangle does not occlude itself.
     origins = index.centroids[ids] + 1e-2 * index.edge_length * normal
@@ -144,7 +155,8 @@ def exterior(
         todo = np.flatnonzero(~escaped)
         if not len(todo):
             break
-        o, d = origins[todo], directions[todo, j]
+        o = origins[todo]
+        d = cap[j, 0] * u[todo] + cap[j, 1] * v[todo] + cap[j, 2] * normal[todo]
         if index.method == "embree":
             forward, _ = _first_embree(index, o, d)
         else:

@@ -118,12 +118,11 @@ def _fill(values: np.ndarray, hit: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
     n = len(values)
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    edges = np.unique(np.sort(edges, axis=1), axis=0)
-    ones = np.ones(len(edges))
+    ones = np.ones(2 * len(edges))
     adjacency = sp.coo_matrix(
-        (np.concatenate([ones, ones]), (np.concatenate(edges.T[::-1]), np.concatenate(edges.T))),
-        shape=(n, n),
+        (ones, (np.concatenate(edges.T[::-1]), np.concatenate(edges.T))), shape=(n, n)
     ).tocsr()
+    adjacency.data[:] = 1.0  # an edge shared by two triangles was summed twice
     laplacian = sp.diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
     miss = np.flatnonzero(~hit)
     system = laplacian[miss][:, miss].tocsc()
