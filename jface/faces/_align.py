@@ -257,12 +257,17 @@ def _resize(image: Array, factor: int) -> Array:
 
 def _photometric_residual(params: Array, image: Array, template: Array, root_w: Array) -> Array:
     """``√w · (g · image(A t) + b − template(t))`` over the template pixels ``t``; ``params`` =
-    the normalised affine map (6) then ``g − 1`` and ``b``. Every template pixel counts (edges
-    extended): a mask of covered pixels would reward pushing the face out of the frame."""
+    the normalised affine map (6) then ``g − 1`` and ``b``; the image's edges are extended."""
     shape = template.shape[:2]
     a = _to_pixels(params[:6].reshape(2, 3), image.shape[:2], shape)
     warped = _warp(image, a, shape)[0]
     return root_w * ((1 + params[6]) * warped + params[7] - template)
+
+
+def _inside(params: Array, image: Array, template: Array) -> Array:
+    a = _to_pixels(params[:6].reshape(2, 3), image.shape[:2], template.shape[:2])
+    inside = _warp(image, a, template.shape[:2])[1].astype(params.dtype)
+    return inside[..., None] if template.ndim == 3 else inside
 
 
 def _levels(shape: tuple[int, int], levels: int) -> list[int]:
@@ -279,21 +284,29 @@ def _residual(params, args):
 
 @eqx.filter_jit
 def _align_intensity(image, template, weights, start, levels, max_steps, tol):
+    # optimistix's damping is in the default float type: solve in it (float64 under jax_enable_x64)
+    dtype = template.dtype
+    work = jax.dtypes.canonicalize_dtype(jnp.float64)
+    image, template, weights, start = (x.astype(work) for x in (image, template, weights, start))
     shape = template.shape[:2]
     normalised = _to_normalised(start, image.shape[:2], shape).reshape(-1)
     params = jnp.concatenate([normalised, jnp.zeros(2, start.dtype)])
     solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
     root_w = jnp.sqrt(weights)
     for factor in _levels(shape, levels):
-        args = (_resize(image, factor), _resize(template, factor), _resize(root_w, factor))
+        img, tpl = _resize(image, factor), _resize(template, factor)
+        # pixels whose source is outside the image at the level's start are left out for the
+        # whole level: a mask that followed the solution would reward pushing the face out
+        args = (img, tpl, _resize(root_w, factor) * _inside(params, img, tpl))
         sol = optx.least_squares(_residual, solver, params, args, max_steps=max_steps, throw=False)
         params = sol.value
     transform = _to_pixels(params[:6].reshape(2, 3), image.shape[:2], shape)
+    root_w = root_w * _inside(params, image, template)
     res = _photometric_residual(params, image, template, root_w)
-    rms = jnp.sqrt(jnp.sum(res * res) / jnp.sum(weights))
+    rms = jnp.sqrt(jnp.sum(res * res) / jnp.maximum(jnp.sum(root_w * root_w), 1e-12))
     coverage = jnp.mean(_warp(image, transform, shape)[1].astype(transform.dtype))
     converged = (sol.result == optx.RESULTS.successful) & (coverage >= MIN_COVERAGE)
-    return transform, rms, coverage, converged
+    return transform.astype(dtype), rms.astype(dtype), coverage.astype(dtype), converged
 
 
 def align(
