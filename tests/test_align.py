@@ -223,3 +223,71 @@ def test_alignment_that_does_not_converge_is_an_error(lfw64, warped):
         faces.align(images[0], lfw64[0], init=far)
     quiet = faces.align(images[0], lfw64[0], init=far, throw=False)
     assert not bool(quiet.converged)
+
+
+# --- command line -------------------------------------------------------------------------------
+
+
+def test_cli_align_then_synth_and_unwarp(tmp_path, lfw64, warped, capsys):
+    """`jface faces align` from landmarks recovers the warps; `synth --unwarp` puts each new
+    face into the frame of one training face."""
+    import json
+
+    from jface import io
+    from jface.cli import main
+
+    images, truth = warped
+    folder = tmp_path / "warped"
+    names = [f"face{i}.png" for i in range(len(images))]
+    for name, image in zip(names, images, strict=True):
+        io.write_png(folder / name, np.clip(image, 0, 1))
+    marks = {
+        "template": TEMPLATE_LANDMARKS.tolist(),
+        "images": {
+            n: apply(t, TEMPLATE_LANDMARKS).tolist() for n, t in zip(names, truth, strict=True)
+        },
+    }
+    (tmp_path / "marks.json").write_text(json.dumps(marks))
+    aligned = tmp_path / "aligned"
+    args = ["faces", "align", str(folder), "--grey", "--landmarks", str(tmp_path / "marks.json")]
+    assert main([*args, "--out", str(aligned)]) == 0
+    document = io.read_json(aligned / "transforms.json")
+    assert document["template_shape"] == [SIZE, SIZE] and "jface_version" in document
+    for record, name, b_inv in zip(document["faces"], names, truth, strict=True):
+        assert record["file"] == name and corner_error(record["transform"], b_inv) < 1e-3
+    synth = tmp_path / "synth"
+    code = main(
+        ["faces", "synth", str(aligned), "--grey", "--n", "2", "--grid", "4", "--out", str(synth),
+         "--unwarp", str(aligned / "transforms.json")]
+    )  # fmt: skip
+    assert code == 0
+    frames = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames_of"]
+    for i, name in enumerate(frames):
+        face = io.read_image(synth / f"face_{i:03d}.png", grey=True)
+        unwarped = io.read_image(synth / f"unwarped_{i:03d}.png", grey=True)
+        b_inv = truth[names.index(name)]
+        expected = np.asarray(faces.warp(face, faces.invert_affine(b_inv)))
+        assert np.max(np.abs(unwarped - expected)) < 2 / 255  # PNG rounding only
+
+
+def test_cli_names_the_bad_input(tmp_path, lfw64, warped, capsys):
+    from jface import io
+    from jface.cli import main
+
+    images, _ = warped
+    folder = tmp_path / "warped"
+    for i, image in enumerate(images[:3]):
+        io.write_png(folder / f"face{i}.png", np.clip(image, 0, 1))
+    args = ["faces", "align", str(folder), "--grey", "--max-steps", "1"]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 2
+    assert "face0.png: image did not align" in capsys.readouterr().err
+    bad = {"template_shape": [SIZE, SIZE], "faces": [
+        {"file": "x.png", "shape": [SIZE, SIZE], "transform": [[1, 0, float("nan")], [0, 1, 0]]}
+    ]}  # fmt: skip
+    io.write_json(tmp_path / "bad.json", bad)
+    code = main(
+        ["faces", "synth", str(folder), "--grey", "--n", "1", "--grid", "4",
+         "--out", str(tmp_path / "s"), "--unwarp", str(tmp_path / "bad.json")]
+    )  # fmt: skip
+    assert code == 2
+    assert "bad.json: transforms must be finite" in capsys.readouterr().err
