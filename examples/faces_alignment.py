@@ -129,6 +129,9 @@ def main(out: Path, seed: int) -> None:
         "corner_error_px": summary(consistency),
         "share_within_1px": round(float(np.mean(consistency <= 1)), 2),
         "converged": int(np.sum(from_warped.converged)),
+        "crop_to_mean_corner_shift_px": summary(
+            corner_errors(from_crop.transform, [np.eye(2, 3)] * len(originals))
+        ),
     }
 
     # 2. synthesis in the template frame, 3. un-warping
