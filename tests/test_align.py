@@ -137,6 +137,19 @@ def test_intensity_alignment_absorbs_gain_and_offset(lfw64, warped):
     assert float(result.rms) < 2 * float(without_gain.rms) + 1e-3
 
 
+def test_colour_faces_align_and_unwarp_into_another_size(lfw64, warped):
+    images, truth = warped
+    tint = np.array([1.0, 0.8, 0.6], np.float32)
+    result = faces.align(images[3][..., None] * tint, lfw64[3][..., None] * tint)
+    assert result.image.shape == (SIZE, SIZE, 3)
+    assert corner_error(result.transform, truth[3]) < 0.25
+    out, i = faces.unwarp(jax.random.key(0), result.image, truth, shape=(48, 80))
+    assert out.shape == (48, 80, 3)
+    assert np.allclose(
+        out[..., 1], faces.warp(result.image[..., 1], faces.invert_affine(truth[int(i)]), (48, 80))
+    )
+
+
 def test_jit_equals_eager_and_vmap_equals_loop(lfw64, warped):
     images, _ = warped
     templates = lfw64[:3]
@@ -192,7 +205,10 @@ def _bad_cases(face):
         (lambda: faces.align(face[0], face), "image must be one image"),
         (lambda: faces.align(face, np.stack([face] * 3, -1)), "same channels"),
         (lambda: faces.align(face, face, landmarks=lm), "must be given together"),
-        (lambda: faces.align(face, face, landmarks=lm[:, :1], template_landmarks=lm), "points"),
+        (
+            lambda: faces.align(face, face, landmarks=lm[:, :1], template_landmarks=lm),
+            "landmarks must be",
+        ),
         (
             lambda: faces.align(face, face, landmarks=lm[:2], template_landmarks=lm[:2]),
             "at least 3 landmarks",

@@ -124,22 +124,26 @@ def fit_affine(points: ArrayLike, template_points: ArrayLike) -> Float[Array, "2
         ValueError: shapes differ, fewer than 3 points, NaN/inf, or template points on one line
             (the affine map is then not determined).
     """
-    tp = _check_points(template_points, "template_points")
-    p = _check_points(points, "points", dtype=tp.dtype)
+    return _fit_affine(*_check_pairs(points, template_points, "points", "template_points"))
+
+
+def _check_pairs(points: Any, template_points: Any, name: str, template_name: str):
+    tp = _check_points(template_points, template_name)
+    p = _check_points(points, name, dtype=tp.dtype)
     if p.shape != tp.shape:
         raise ValueError(
-            f"points and template_points must have one shape, got {p.shape} and {tp.shape}"
+            f"{name} and {template_name} must have one shape, got {p.shape} and {tp.shape}"
         )
     if tp.shape[0] < 3:
-        raise ValueError(f"need at least 3 landmarks for an affine map, got {tp.shape[0]}")
+        raise ValueError(f"need at least 3 {name} for an affine map, got {tp.shape[0]}")
     if not _checks.is_traced(tp):
         centred = np.asarray(tp, np.float64) - np.asarray(tp, np.float64).mean(axis=0)
         s = np.linalg.svd(centred, compute_uv=False)
         if s[1] <= 1e-9 * max(s[0], 1e-30):
             raise ValueError(
-                "template_points must not all lie on one line: the affine map is not determined"
+                f"{template_name} must not all lie on one line: the affine map is not determined"
             )
-    return _fit_affine(p, tp)
+    return p, tp
 
 
 @jax.jit
@@ -376,10 +380,16 @@ def align(
     if landmarks is not None:
         if init is not None:
             raise ValueError("init applies to the intensity alignment, not with landmarks")
-        transform = fit_affine(landmarks, template_landmarks).astype(tpl.dtype)
+        pairs = _check_pairs(landmarks, template_landmarks, "landmarks", "template_landmarks")
+        transform = _fit_affine(*pairs).astype(tpl.dtype)
         warped, inside = _warp(img, transform, shape)
-        rms = jnp.sqrt(jnp.sum(w * (warped - tpl) ** 2) / jnp.sum(w * jnp.ones_like(tpl)))
-        coverage = jnp.mean(inside.astype(tpl.dtype))
+        inside = inside.astype(tpl.dtype)
+        covered = w * (inside[..., None] if tpl.ndim == 3 else inside)
+        rms = jnp.sqrt(
+            jnp.sum(covered * (warped - tpl) ** 2)
+            / jnp.maximum(jnp.sum(covered * jnp.ones_like(tpl)), 1e-12)
+        )
+        coverage = jnp.mean(inside)
         return Alignment(warped, transform, rms, coverage, jnp.ones((), bool))
     levels = _checks.integer(levels, "levels", low=1)
     max_steps = _checks.integer(max_steps, "max_steps", low=1)
