@@ -297,6 +297,10 @@ def test_cli_names_the_bad_input(tmp_path, lfw64, warped, capsys):
     args = ["faces", "align", str(folder), "--grey", "--max-steps", "1"]
     assert main([*args, "--out", str(tmp_path / "a")]) == 2
     assert "face0.png: image did not align" in capsys.readouterr().err
+    before = (folder / "face0.png").read_bytes()
+    assert main(["faces", "align", str(folder), "--grey", "--out", str(folder)]) == 2
+    assert "face0.png" in capsys.readouterr().err  # an input named as an output
+    assert (folder / "face0.png").read_bytes() == before
     bad = {"template_shape": [SIZE, SIZE], "faces": [
         {"file": "x.png", "shape": [SIZE, SIZE], "transform": [[1, 0, float("nan")], [0, 1, 0]]}
     ]}  # fmt: skip

@@ -291,8 +291,11 @@ def _align_intensity(image, template, weights, start, levels, max_steps, tol):
     # optimistix's damping is in the default float type: solve in it (float64 under jax_enable_x64)
     dtype = template.dtype
     work = jax.dtypes.canonicalize_dtype(jnp.float64)
-    image, template, weights, start = (x.astype(work) for x in (image, template, weights, start))
     shape = template.shape[:2]
+    if start is None:  # the template frame stretched over the whole image
+        start = _to_pixels(jnp.eye(2, 3, dtype=work), image.shape[:2], shape)
+    weights = weights * jnp.ones_like(template)
+    image, template, weights, start = (x.astype(work) for x in (image, template, weights, start))
     normalised = _to_normalised(start, image.shape[:2], shape).reshape(-1)
     params = jnp.concatenate([normalised, jnp.zeros(2, start.dtype)])
     solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
@@ -310,7 +313,9 @@ def _align_intensity(image, template, weights, start, levels, max_steps, tol):
     rms = jnp.sqrt(jnp.sum(res * res) / jnp.maximum(jnp.sum(root_w * root_w), 1e-12))
     coverage = jnp.mean(_warp(image, transform, shape)[1].astype(transform.dtype))
     converged = (sol.result == optx.RESULTS.successful) & (coverage >= MIN_COVERAGE)
-    return transform.astype(dtype), rms.astype(dtype), coverage.astype(dtype), converged
+    transform = transform.astype(dtype)
+    aligned = _warp(image.astype(dtype), transform, shape)[0]
+    return Alignment(aligned, transform, rms.astype(dtype), coverage.astype(dtype), converged)
 
 
 def align(
@@ -394,14 +399,10 @@ def align(
     levels = _checks.integer(levels, "levels", low=1)
     max_steps = _checks.integer(max_steps, "max_steps", low=1)
     tol = _checks.real(tol, "tol", low=0.0, open_low=True)
-    if init is None:
-        start = _to_pixels(jnp.eye(2, 3, dtype=tpl.dtype), img.shape[:2], shape)
-    else:
-        start = _check_transform(init, "init").astype(tpl.dtype)
-    transform, rms, coverage, converged = _align_intensity(
-        img, tpl, w * jnp.ones_like(tpl), start, levels, max_steps, tol
-    )
-    if throw and not _checks.is_traced(converged) and not bool(converged):
+    start = None if init is None else _check_transform(init, "init").astype(tpl.dtype)
+    result = _align_intensity(img, tpl, w, start, levels, max_steps, tol)
+    rms, coverage = result.rms, result.coverage
+    if throw and not _checks.is_traced(result.converged) and not bool(result.converged):
         raise ValueError(
             f"image did not align to the template: after up to {max_steps} solver steps per "
             f"level, rms {float(rms):.3g} and {float(coverage):.0%} of the template inside the "
@@ -409,7 +410,7 @@ def align(
             "closer (init, or landmarks), raise max_steps, or check that the image shows a face "
             "framed like the template"
         )
-    return Alignment(_warp(img, transform, shape)[0], transform, rms, coverage, converged)
+    return result
 
 
 def _check_weights(weights: Any, shape: tuple[int, int], dtype) -> Array:
