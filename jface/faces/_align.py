@@ -327,7 +327,7 @@ def align(
     init: ArrayLike | None = None,
     levels: int = 3,
     max_steps: int = 100,
-    tol: float = 1e-6,
+    tol: float = 1e-4,
     weights: ArrayLike | None = None,
     throw: bool = True,
 ) -> Alignment:
@@ -353,8 +353,9 @@ def align(
         init: ``(2, 3)`` starting transform of the intensity alignment.
         levels: number of pyramid levels of the intensity alignment.
         max_steps: solver steps per level.
-        tol: relative and absolute tolerance of the solver (on the normalised parameters, where
-            the frame spans 2).
+        tol: relative and absolute tolerance of the solver on the normalised parameters, where
+            the frame spans 2 (the default, 1e-4, is 0.003 px at 64²; 1e-6 takes about 1.5× the
+            steps and left the largest corner error on 12 warped LFW faces at 0.076 px).
         weights: optional ``(H, W)`` non-negative weight of each template pixel in the
             intensity alignment and ``rms`` (e.g. 1 on the face, 0 on the background).
         throw: raise when an intensity alignment does not converge (checked on concrete values
