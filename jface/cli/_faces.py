@@ -1,4 +1,5 @@
-"""``jface faces``: train global face models on images and draw samples from them."""
+"""``jface faces``: train global face models on images and draw samples from them; align faces
+to a template (and un-warp synthesised ones, ``synth --unwarp``)."""
 
 from __future__ import annotations
 
@@ -63,7 +64,8 @@ def register(subparsers) -> None:
     align.add_argument(
         "--landmarks",
         help='JSON {"template": [[x, y], ...], "images": {"file name": [[x, y], ...]}}: align '
-        "from these landmarks (closed form) instead of by intensity",
+        "from these landmarks (closed form) instead of by intensity; use them for faces of "
+        "different people (by intensity, a face is only reliably aligned to a close template)",
     )
     align.add_argument("--grey", action="store_true", help="read the faces as greyscale")
     align.add_argument("--levels", type=int, default=3, help="pyramid levels (default 3)")
@@ -195,7 +197,11 @@ def demo(out_dir: Path, seed: int) -> None:
 def _landmark_table(path: str, files: list[Path]) -> tuple[np.ndarray, list[np.ndarray]]:
     """The template's landmarks and each file's, from a JSON keyed by file name."""
     table = read_json(path)
-    if not isinstance(table, dict) or not {"template", "images"} <= table.keys():
+    if (
+        not isinstance(table, dict)
+        or not {"template", "images"} <= table.keys()
+        or not isinstance(table["images"], dict)
+    ):
         raise ValueError(f'{path} must hold {{"template": [...], "images": {{...}}}}')
     template = np.asarray(table["template"], np.float64)
     missing = [f.name for f in files if f.name not in table["images"]]
