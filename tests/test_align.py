@@ -298,6 +298,11 @@ def test_cli_names_the_bad_input(tmp_path, lfw64, warped, capsys):
     args = ["faces", "align", str(folder), "--grey", "--max-steps", "1"]
     assert main([*args, "--out", str(tmp_path / "a")]) == 2
     assert "face0.png: image did not align" in capsys.readouterr().err
+    partial = {"template": TEMPLATE_LANDMARKS.tolist(), "images": {"face0.png": [[1, 2]] * 5}}
+    io.write_json(tmp_path / "marks.json", partial)
+    marked = ["--landmarks", str(tmp_path / "marks.json"), "--out", str(tmp_path / "b")]
+    assert main(["faces", "align", str(folder), "--grey", *marked]) == 2
+    assert "marks.json has no landmarks for face1.png" in capsys.readouterr().err
     before = (folder / "face0.png").read_bytes()
     assert main(["faces", "align", str(folder), "--grey", "--out", str(folder)]) == 2
     assert "face0.png" in capsys.readouterr().err  # an input named as an output

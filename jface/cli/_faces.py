@@ -203,11 +203,14 @@ def _landmark_table(path: str, files: list[Path]) -> tuple[np.ndarray, list[np.n
         or not isinstance(table["images"], dict)
     ):
         raise ValueError(f'{path} must hold {{"template": [...], "images": {{...}}}}')
-    template = np.asarray(table["template"], np.float64)
     missing = [f.name for f in files if f.name not in table["images"]]
     if missing:
         raise ValueError(f"{path} has no landmarks for {', '.join(missing[:5])}")
-    return template, [np.asarray(table["images"][f.name], np.float64) for f in files]
+    try:
+        template = np.asarray(table["template"], np.float64)
+        return template, [np.asarray(table["images"][f.name], np.float64) for f in files]
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: landmarks must be lists of [x, y] numbers ({err})") from err
 
 
 def _align(args: argparse.Namespace) -> None:
