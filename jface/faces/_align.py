@@ -45,8 +45,8 @@ class Alignment(NamedTuple):
         image: the image resampled into the template frame, the template's ``(H, W)`` (and the
             input's channels).
         transform: ``(2, 3)`` affine map from template pixels to input-image pixels.
-        rms: root-mean-square intensity difference to the template over the covered pixels
-            (after the fitted gain and offset, for an intensity alignment).
+        rms: root-mean-square intensity difference to the template over the covered pixels,
+            weighted by ``weights`` (after the fitted gain and offset, by intensity).
         coverage: share of template pixels whose source lies inside the input image.
         converged: whether the solver met its tolerance within ``max_steps`` at the finest level
             and the coverage is at least ``MIN_COVERAGE`` (always True from landmarks).
