@@ -1,8 +1,10 @@
-"""``jface faces``: train global face models on images and draw samples from them."""
+"""``jface faces``: train global face models on images and draw samples from them; align faces
+to a template (and un-warp synthesised ones, ``synth --unwarp``)."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
 from importlib import resources
@@ -10,10 +12,19 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from tqdm import tqdm
 
 from jface import faces, raster
 from jface.cli import _quilt as quilting
-from jface.io import check_output, load_arrays, provenance, write_png
+from jface.io import (
+    check_output,
+    load_arrays,
+    provenance,
+    read_image,
+    read_json,
+    write_json,
+    write_png,
+)
 
 
 def register(subparsers) -> None:
@@ -40,7 +51,41 @@ def register(subparsers) -> None:
     sample.add_argument("--noise", action="store_true", help="add the per-pixel noise term")
     sample.add_argument("--out", required=True, help="output folder (PNGs and grid.png)")
     sample.set_defaults(run=_sample)
+
+    align = sub.add_parser(
+        "align", help="register face images to a template by an affine map (§2.2)"
+    )
+    align.add_argument("images", nargs="+", help="face images (PNG/JPEG) or folders of them")
+    align.add_argument(
+        "--template",
+        help="template image: the frame to align to (default: the mean of the images, which "
+        "must then share one size)",
+    )
+    align.add_argument(
+        "--landmarks",
+        help='JSON {"template": [[x, y], ...], "images": {"file name": [[x, y], ...]}}: align '
+        "from these landmarks (closed form) instead of by intensity; use them for faces of "
+        "different people (by intensity, a face is only reliably aligned to a close template)",
+    )
+    align.add_argument("--grey", action="store_true", help="read the faces as greyscale")
+    align.add_argument("--levels", type=int, default=3, help="pyramid levels (default 3)")
+    align.add_argument(
+        "--max-steps", type=int, default=100, help="solver steps per level (default 100)"
+    )
+    align.add_argument(
+        "--out", required=True, help="output folder: the aligned faces and transforms.json"
+    )
+    align.set_defaults(run=_align)
+
     quilting.add_actions(sub, sample_name="synth")
+    synth = sub.choices["synth"]
+    synth.add_argument(
+        "--unwarp",
+        metavar="TRANSFORMS",
+        help="transforms.json of `jface faces align`: also write each face un-warped by the "
+        "inverse of a randomly chosen training transformation (§4)",
+    )
+    synth.set_defaults(run=_synth)
 
 
 def _fit(data: np.ndarray, factors: int, components: int, iters: int, seed: int):
@@ -144,3 +189,128 @@ def demo(out_dir: Path, seed: int) -> None:
         f"{ll[-1]:.0f} nats/image); 16 samples in {grid_path}"
     )
     quilting.demo(out_dir, seed)
+
+
+# --- alignment and un-warping -----------------------------------------------------------------
+
+
+def _landmark_table(path: str, files: list[Path]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The template's landmarks and each file's, from a JSON keyed by file name."""
+    table = read_json(path)
+    if (
+        not isinstance(table, dict)
+        or not {"template", "images"} <= table.keys()
+        or not isinstance(table["images"], dict)
+    ):
+        raise ValueError(f'{path} must hold {{"template": [...], "images": {{...}}}}')
+    missing = [f.name for f in files if f.name not in table["images"]]
+    if missing:
+        raise ValueError(f"{path} has no landmarks for {', '.join(missing[:5])}")
+    try:
+        template = np.asarray(table["template"], np.float64)
+        return template, [np.asarray(table["images"][f.name], np.float64) for f in files]
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: landmarks must be lists of [x, y] numbers ({err})") from err
+
+
+def _align(args: argparse.Namespace) -> None:
+    files = quilting._image_files(args.images)
+    out = Path(args.out)
+    names = [f"{f.stem}.png" for f in files]
+    if len(set(names)) != len(names):
+        raise ValueError("the images must have distinct file names (the outputs take them)")
+    for name in [*names, "transforms.json"]:
+        check_output(out / name, (".png", ".json"))
+    images = [read_image(f, grey=args.grey).astype(np.float32) for f in files]
+    if args.template:
+        template = read_image(args.template, grey=args.grey).astype(np.float32)
+    elif len({im.shape for im in images}) == 1:
+        template = np.mean(images, axis=0)
+    else:
+        raise ValueError("the images differ in size: give --template (the frame to align to)")
+    marks = _landmark_table(args.landmarks, files) if args.landmarks else None
+    records, aligned = [], []
+    pairs = list(zip(files, images, strict=True))
+    for i, (file, image) in enumerate(
+        tqdm(pairs, desc="align", unit="face", disable=len(pairs) < 200)
+    ):
+        extra = {} if marks is None else {"landmarks": marks[1][i], "template_landmarks": marks[0]}
+        try:
+            result = faces.align(
+                image, template, levels=args.levels, max_steps=args.max_steps, **extra
+            )
+        except ValueError as err:
+            raise ValueError(f"{file}: {err}") from err
+        aligned.append(np.clip(np.asarray(result.image), 0, 1))
+        records.append(
+            {
+                "file": file.name,
+                "shape": list(image.shape[:2]),
+                "transform": np.asarray(result.transform, np.float64).round(6).tolist(),
+                "rms": round(float(result.rms), 5),
+                "coverage": round(float(result.coverage), 4),
+            }
+        )
+    method = "landmarks" if marks else "intensity"
+    meta = provenance(method=method, template=args.template or "mean of the images")
+    for name, image in zip(names, aligned, strict=True):
+        write_png(out / name, image, metadata=meta)
+    document = {**meta, "template_shape": list(template.shape[:2]), "faces": records}
+    write_json(out / "transforms.json", document)
+    rms = [r["rms"] for r in records]
+    print(
+        f"aligned {len(files)} faces to a {template.shape[1]}×{template.shape[0]} template by "
+        f"{method} (rms to the template: median {np.median(rms):.3f}, max {max(rms):.3f}); "
+        f"wrote {out}/"
+    )
+
+
+def read_transforms(path: str) -> tuple[np.ndarray, list[tuple[int, int]], list[str], tuple]:
+    """Training transforms written by ``jface faces align``: ``(n, 2, 3)``, each face's
+    ``(h, w)``, its file name, and the template's ``(H, W)``."""
+    document = read_json(path)
+    try:
+        records = document["faces"]
+        transforms = np.asarray([r["transform"] for r in records], np.float64)
+        shapes = [tuple(int(v) for v in r["shape"]) for r in records]
+        names = [str(r["file"]) for r in records]
+        template_shape = tuple(int(v) for v in document["template_shape"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise ValueError(
+            f"{path} is not a transforms file of `jface faces align` ({err!r})"
+        ) from err
+    if transforms.ndim != 3 or transforms.shape[1:] != (2, 3) or not len(records):
+        raise ValueError(f"{path} must hold (2, 3) transforms, got shape {transforms.shape}")
+    return transforms, shapes, names, template_shape
+
+
+def _synth(args: argparse.Namespace) -> None:
+    if args.unwarp is None:
+        quilting._sample(args)
+        return
+    transforms, shapes, names, template_shape = read_transforms(args.unwarp)
+    out = Path(args.out)
+    for i in range(max(args.n, 0)):
+        check_output(out / f"unwarped_{i:03d}.png", (".png",))
+    made = quilting._sample(args)
+    if made.shape[1:3] != template_shape:
+        raise ValueError(
+            f"--unwarp: {args.unwarp} holds transforms of faces aligned to a "
+            f"{template_shape[1]}×{template_shape[0]} template, the faces are "
+            f"{made.shape[2]}×{made.shape[1]}"
+        )
+    # keys apart from the synthesis's (which splits the seed's key itself)
+    keys = jax.random.split(jax.random.fold_in(jax.random.key(args.seed), 1), len(made))
+    frames = []
+    for i, (key, face) in enumerate(zip(keys, made, strict=True)):
+        try:
+            unwarped, index = faces.unwarp(key, face, transforms)
+            index = int(index)
+            if shapes[index] != face.shape[:2]:  # the same key chooses the same face again
+                unwarped, _ = faces.unwarp(key, face, transforms, shape=shapes[index])
+        except ValueError as err:
+            raise ValueError(f"--unwarp {args.unwarp}: {err}") from err
+        meta = provenance(seed=args.seed, face=i, frame_of=names[index])
+        write_png(out / f"unwarped_{i:03d}.png", np.clip(np.asarray(unwarped), 0, 1), metadata=meta)
+        frames.append(names[index])
+    print(json.dumps({"unwarped": len(made), "frames_of": frames}))

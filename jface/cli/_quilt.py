@@ -196,7 +196,8 @@ def _check_outputs(out: Path, names) -> None:
         io.check_output(out / name, (".png", ".json"))
 
 
-def _sample(args: argparse.Namespace) -> None:
+def _sample(args: argparse.Namespace) -> np.ndarray:
+    """Synthesise ``--n`` faces, write them, and return them ``(n, H, W[, C])``."""
     if args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
     faces_out = [f"face_{i:03d}.png" for i in range(args.n)]
@@ -206,8 +207,7 @@ def _sample(args: argparse.Namespace) -> None:
     library = _library(args, images)
     key_target, key_quilt = jax.random.split(jax.random.key(args.seed))
     if args.model:
-        _sample_from_model(args, images, library, files)
-        return
+        return _sample_from_model(args, images, library, files)
     if args.global_model == "pca":
         targets = pca_targets(key_target, images, args.components, args.n)
     else:
@@ -221,6 +221,7 @@ def _sample(args: argparse.Namespace) -> None:
     ]
     result = jax.tree.map(lambda *xs: jnp.stack(xs), *made)
     _write_samples(args, images, library, files, result, targets, settings)
+    return np.asarray(result.image)
 
 
 def _load_model(path: str):
@@ -230,7 +231,7 @@ def _load_model(path: str):
     return model
 
 
-def _sample_from_model(args, images, library, files) -> None:
+def _sample_from_model(args, images, library, files) -> np.ndarray:
     model = _load_model(args.model)
     assignment = None
     if hasattr(model, "n_components"):
@@ -246,6 +247,7 @@ def _sample_from_model(args, images, library, files) -> None:
     result = jax.tree.map(lambda *xs: jnp.stack(xs), *[m[0] for m in made])
     targets = np.stack([np.asarray(m[1]) for m in made])
     _write_samples(args, images, library, files, result, targets, settings)
+    return np.asarray(result.image)
 
 
 def _write_samples(args, images, library, files, result, targets, settings) -> None:

@@ -23,10 +23,15 @@ Synthesis and editing (§2, §4, §5, §6):
   factor analyser or mixture, patches from the sampled component's images),
   :func:`assign_components`, :func:`inpaint_hypotheses` (targets from the posterior of the
   observed pixels), :func:`restyle` (expression change with the bilinear model).
+* Registration (§2.2, §4): :func:`align` (affine registration of a face to a template, from
+  landmarks in closed form or by intensity, coarse to fine), :class:`Alignment`,
+  :func:`fit_affine`, :func:`warp`, :func:`invert_affine`, and :func:`unwarp` (a synthesised
+  face carried into the frame of a randomly chosen training face).
 * Analysis (§5): :func:`nearest_training`, :func:`novelty`, :func:`training_nn_distances`,
   :func:`target_distance`, :func:`distinct_sources`, :func:`source_map`.
 """
 
+from jface.faces._align import Alignment, align, fit_affine, invert_affine, unwarp, warp
 from jface.faces._api import (
     fit_bilinear,
     fit_factor_analyser,
@@ -62,6 +67,7 @@ from jface.faces._quilting import QuiltResult, quilt
 from jface.faces._store import load_model, save_model
 
 __all__ = [
+    "Alignment",
     "BilinearModel",
     "EMResult",
     "FactorAnalyser",
@@ -71,10 +77,12 @@ __all__ = [
     "PatchLibrary",
     "Posterior",
     "QuiltResult",
+    "align",
     "assign_components",
     "build_library",
     "distinct_sources",
     "divergence",
+    "fit_affine",
     "fit_bilinear",
     "fit_factor_analyser",
     "fit_mixture",
@@ -83,6 +91,7 @@ __all__ = [
     "guided_edit",
     "inpaint",
     "inpaint_hypotheses",
+    "invert_affine",
     "load_model",
     "log_likelihood",
     "make_geometry",
@@ -104,4 +113,6 @@ __all__ = [
     "target_distance",
     "training_nn_distances",
     "transfer",
+    "unwarp",
+    "warp",
 ]
