@@ -129,3 +129,11 @@ def key(x: Any, name: str = "key") -> jax.Array:
     raise TypeError(
         f"{name} must be a JAX random key such as jax.random.key(seed), got {describe(x)}"
     )
+
+
+def single_key(x: Any, name: str = "key") -> jax.Array:
+    """:func:`key`, and one key only: a stack of typed keys is refused (vmap for many)."""
+    x = key(x, name)
+    if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) and x.shape != ():
+        raise ValueError(f"{name} must be a single key (vmap for many), got shape {x.shape}")
+    return x

@@ -415,3 +415,17 @@ def test_cli_train_and_sample(tmp_path, monkeypatch, lfw, capsys):
     ]
     assert jface.cli.main(bad) == 2
     assert "small.png is (20, 20)" in capsys.readouterr().err
+
+
+def test_sampling_refuses_what_is_not_one_key(unchecked, key):
+    """A seed instead of a key, or a stack of keys: the library's one message, not JAX's."""
+    model = random_model(4, d=12, q=2, shape=(3, 4))
+    x, mask = np.zeros((3, 4)), np.ones((3, 4), bool)
+    for call in (
+        lambda k: faces.sample(k, model, 2),
+        lambda k: faces.sample_posterior(k, model, x, 2, mask),
+    ):
+        with pytest.raises(TypeError, match="key must be a JAX random key"):
+            call(3)
+        with pytest.raises(ValueError, match="key must be a single key"):
+            call(jax.random.split(key, 2))

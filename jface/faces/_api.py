@@ -364,6 +364,7 @@ def sample(
         images ``(n, *shape)``; with ``return_components`` (mixtures only) also the component
         index of each image.
     """
+    key = _checks.single_key(key)
     check_model(model, kinds=_IMAGE_MODELS)
     n = _count(n)
     if isinstance(model, FactorAnalyser):
@@ -388,6 +389,7 @@ def sample_posterior(
     With a mask these are the "multiple hypotheses" global targets of inpainting (Fig. 10I). For
     a mixture each draw first picks a component from ``p(k | x)``.
     """
+    key = _checks.single_key(key)
     n = _count(n)
     post = posterior(model, x, mask, form=form)
     if isinstance(model, FactorAnalyser):

@@ -31,7 +31,6 @@ from jface.faces._quilting import (
     QuiltResult,
     _quilt,
     _windows,
-    check_key,
     check_library,
     finish,
     settings,
@@ -79,7 +78,7 @@ def inpaint(
         TypeError / ValueError: bad key/library, image or target of the wrong shape, a mask of
         the wrong shape or dtype, empty or covering everything, and the errors of :func:`quilt`.
     """
-    key = check_key(key)
+    key = _checks.single_key(key)
     library = check_library(library)
     dtype = library.patches.dtype
     image = face_image(image, library, "image", dtype)

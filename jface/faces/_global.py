@@ -28,7 +28,7 @@ from jface import _checks
 from jface.faces import _poisson
 from jface.faces._editing import inpaint
 from jface.faces._patches import PatchLibrary, training_images
-from jface.faces._quilting import LAM, QuiltResult, check_key, check_library, quilt
+from jface.faces._quilting import LAM, QuiltResult, check_library, quilt
 
 
 def _models():
@@ -101,7 +101,7 @@ def synthesize(
         (``0`` for a factor analyser).
     """
     api, analyser, mixture, _ = _models()
-    key = check_key(key)
+    key = _checks.single_key(key)
     library = check_library(library)
     if not isinstance(model, (analyser, mixture)):
         raise TypeError(
@@ -180,7 +180,7 @@ def inpaint_hypotheses(
         ``n`` global targets.
     """
     api, analyser, _, _ = _models()
-    key = check_key(key)
+    key = _checks.single_key(key)
     library = check_library(library)
     _check_model_shape(model, library)
     n = _checks.integer(n, "n", low=1)
@@ -241,7 +241,7 @@ def restyle(
         target style (Eq. 8, Fig. 12C).
     """
     api, _, _, bilinear = _models()
-    key = check_key(key)
+    key = _checks.single_key(key)
     library = check_library(library)
     if not isinstance(model, bilinear):
         raise TypeError(f"model must be a BilinearModel, got {type(model).__name__}")

@@ -243,14 +243,6 @@ def _quilt(
     return image, quilted, ids, chosen_src, errors
 
 
-def check_key(key: Any) -> PRNGKeyArray:
-    """Validate one JAX random key (vmap for many)."""
-    key = _checks.key(key)
-    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) and key.shape != ():
-        raise ValueError(f"key must be a single key (vmap for many), got shape {key.shape}")
-    return key
-
-
 def check_library(library: Any) -> PatchLibrary:
     if not isinstance(library, PatchLibrary):
         raise TypeError(
@@ -333,7 +325,7 @@ def quilt(
         TypeError / ValueError: a bad key or library, a target of the wrong shape, ``lam < 0``,
             ``n_best`` larger than the library, a malformed or empty ``allowed``.
     """
-    key = check_key(key)
+    key = _checks.single_key(key)
     library = check_library(library)
     dtype = library.patches.dtype
     target = face_image(target, library, "target", dtype)
