@@ -64,8 +64,9 @@ def register(subparsers) -> None:
     sim.add_argument("--levels", type=int, default=1, help="levels when no --params (α_d halves)")
     sim.add_argument("--radius-map", help="EXR radius scaling map R (single channel, > 0)")
     sim.add_argument("--periodic", action="store_true", help="wrap the unit square (tileable)")
-    sim.add_argument("--steps", type=int, default=50, help="simulation steps per level")
-    sim.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, E))")
+    sim.add_argument("--steps", type=int,
+                     help="simulation steps per level (default: until converged)")  # fmt: skip
+    sim.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, |E|))")
     sim.add_argument("--k", type=int, default=6, help="nearest neighbours per pore")
     sim.add_argument("--size", type=int, default=1024, help="PNG size in pixels")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
@@ -92,8 +93,9 @@ def register(subparsers) -> None:
                      help="mesh displacement per map unit, as a fraction of the mesh's "
                      "bounding-box diagonal (default 0.001)")  # fmt: skip
     ren.add_argument("--periodic", action="store_true", help="tileable map (torus)")
-    ren.add_argument("--steps", type=int, default=50, help="simulation steps per level")
-    ren.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, E))")
+    ren.add_argument("--steps", type=int,
+                     help="simulation steps per level (default: until converged)")  # fmt: skip
+    ren.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, |E|))")
     ren.set_defaults(run=_render)
 
     ext = sub.add_parser(
@@ -126,7 +128,7 @@ def _levels(args) -> list[WrinkleParams]:
     return [p.replace(**changes) for p in levels]
 
 
-def run_levels(key, levels, *, radius_map=None, periodic=False, steps=50, samples=None, k=6):
+def run_levels(key, levels, *, radius_map=None, periodic=False, steps=None, samples=None, k=6):
     """Simulate the levels coarse to fine; returns per level (pores, graph, weights)."""
     results = []
     pores = None
@@ -134,7 +136,7 @@ def run_levels(key, levels, *, radius_map=None, periodic=False, steps=50, sample
         k_pores, k_sim = jax.random.split(jax.random.fold_in(key, i))
         pores = sample_pores(k_pores, params.d, radius_map, initial=pores, periodic=periodic)
         graph = build_graph(pores, k=k)
-        weights = simulate(k_sim, graph, params, n_steps=steps, n_samples=samples)
+        weights = simulate(k_sim, graph, params, n_steps=steps, n_samples=samples, progress=True)
         results.append((pores, graph, weights))
     return results
 
@@ -158,7 +160,7 @@ def draw_graph(results, size: int, periodic: bool) -> np.ndarray:
 
 def _simulate(args: argparse.Namespace) -> None:
     out = Path(args.out)
-    if args.steps < 0 or args.size < 16:
+    if (args.steps is not None and args.steps < 0) or args.size < 16:
         raise ValueError("--steps must be ≥ 0 and --size ≥ 16")
     for name in ("wrinkles.npz", "params.json", "wrinkles.png"):
         check_output(out / name)
@@ -197,7 +199,7 @@ def _simulate(args: argparse.Namespace) -> None:
 def _render(args: argparse.Namespace) -> None:
     if not 16 <= args.size <= 16384:
         raise ValueError(f"--size must be in [16, 16384], got {args.size}")
-    if args.steps < 0 or not args.depth > 0:
+    if (args.steps is not None and args.steps < 0) or not args.depth > 0:
         raise ValueError("--steps must be ≥ 0 and --depth > 0")
     out = check_output(args.out, (".exr",))
     check_output(out.with_suffix(".png"), (".png",))
@@ -222,7 +224,7 @@ def _render(args: argparse.Namespace) -> None:
         mesh=args.mesh, periodic=args.periodic, steps=args.steps, samples=args.samples,
     )  # fmt: skip
     run = dict(initial=initial, radius_map=radius_map, periodic=args.periodic,
-               n_steps=args.steps, n_samples=args.samples)  # fmt: skip
+               n_steps=args.steps, n_samples=args.samples, progress=True)  # fmt: skip
     key = jax.random.key(args.seed)
     shape = (args.size, args.size)
     if args.size > BANDED_ABOVE:

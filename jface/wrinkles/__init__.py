@@ -5,7 +5,7 @@ Pipeline of §3.1, one level::
     params = WrinkleParams(d=0.01, theta=0.5, s=0.2)
     pores = sample_pores(key1, params.d)                  # maximal Poisson-disk pores
     graph = build_graph(pores)                            # symmetric kNN, half-edges, crossings
-    w = simulate(key2, graph, params, n_steps=50)         # trail formation → edge weights W
+    w = simulate(key2, graph, params)                   # trail formation → edge weights W
     disp = draw(key3, graph, w, params, (1024, 1024))     # §3.2: wrinkles + pores → displacement
 
 A finer level starts from the coarser pores: ``sample_pores(key, d2, initial=pores)``.

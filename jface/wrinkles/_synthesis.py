@@ -53,7 +53,7 @@ def _check_levels(key, levels, initial):
     return key, list(levels)
 
 
-def _simulate_levels(key, levels, initial, radius_map, periodic, n_steps, n_samples):
+def _simulate_levels(key, levels, initial, radius_map, periodic, n_steps, n_samples, progress):
     """Per level (coarse to fine): the simulation, the drawing key and the bulge flag."""
     pores = initial
     out = []
@@ -61,7 +61,9 @@ def _simulate_levels(key, levels, initial, radius_map, periodic, n_steps, n_samp
         k_pores, k_sim, k_draw = jax.random.split(jax.random.fold_in(key, i), 3)
         pores = sample_pores(k_pores, params.d, radius_map, initial=pores, periodic=periodic)
         graph = build_graph(pores)
-        weights = simulate(k_sim, graph, params, n_steps=n_steps, n_samples=n_samples)
+        weights = simulate(
+            k_sim, graph, params, n_steps=n_steps, n_samples=n_samples, progress=progress
+        )
         bulge = i < len(levels) - 1 or len(levels) == 1
         out.append((Simulated(pores, graph, weights), k_draw, bulge))
     return out
@@ -75,8 +77,9 @@ def synthesize(
     initial: Pores | None = None,
     radius_map: ArrayLike | None = None,
     periodic: bool = True,
-    n_steps: int = 50,
+    n_steps: int | None = None,
     n_samples: int | None = None,
+    progress: bool = False,
 ) -> Synthesis:
     """Sample, connect, simulate and draw every level (coarse to fine) and sum the maps.
 
@@ -93,7 +96,7 @@ def synthesize(
         initial: pores the first level starts from (e.g. extracted from a scan).
         radius_map: optional radius scaling map **R** (e.g. :func:`radius_map_from_mesh`).
         periodic: the map tiles (torus); False for UV atlases.
-        n_steps, n_samples: of :func:`simulate`.
+        n_steps, n_samples, progress: of :func:`simulate` (default: every level converged).
 
     Returns:
         :class:`Synthesis`.
@@ -101,7 +104,9 @@ def synthesize(
     key, levels = _check_levels(key, levels, initial)
     done = []
     total = None
-    sims = _simulate_levels(key, levels, initial, radius_map, periodic, n_steps, n_samples)
+    sims = _simulate_levels(
+        key, levels, initial, radius_map, periodic, n_steps, n_samples, progress
+    )
     for params, (sim, k_draw, bulge) in zip(levels, sims, strict=True):
         disp = draw(k_draw, sim.graph, sim.weights, params, shape, bulge=bulge)
         done.append(Level(sim.pores, sim.graph, sim.weights, disp))
@@ -131,8 +136,9 @@ def synthesize_bands(
     initial: Pores | None = None,
     radius_map: ArrayLike | None = None,
     periodic: bool = True,
-    n_steps: int = 50,
+    n_steps: int | None = None,
     n_samples: int | None = None,
+    progress: bool = False,
 ) -> Bands:
     """:func:`synthesize` for maps larger than memory: the levels are simulated at once, then
     drawn in horizontal bands (:func:`draw_bands`), so a 16384² map never exists whole; write the
@@ -141,14 +147,16 @@ def synthesize_bands(
 
     Args:
         band: rows per band (default: about 32 MiB of float32 per band).
-        key, levels, shape, initial, radius_map, periodic, n_steps, n_samples: as
+        key, levels, shape, initial, radius_map, periodic, n_steps, n_samples, progress: as
             :func:`synthesize`.
 
     Returns:
         :class:`Bands`.
     """
     key, levels = _check_levels(key, levels, initial)
-    sims = _simulate_levels(key, levels, initial, radius_map, periodic, n_steps, n_samples)
+    sims = _simulate_levels(
+        key, levels, initial, radius_map, periodic, n_steps, n_samples, progress
+    )
     # every level uses the same default tile (it depends on shape and periodicity only), so the
     # levels' bands cover the same rows
     band = default_band(shape) if band is None else _checks.integer(band, "band", low=1)
