@@ -154,7 +154,7 @@ def _draw_entries(key, d_values, graphs, shape, n_steps) -> tuple[int, int]:
             g = jax.tree.map(lambda a, i=i: a[i], graphs[level])
             params = WrinkleParams(d=float(d_values[i]) / (1 + level), **_WIDE)
             w = simulate(key, g, params, n_steps=n_steps)
-            prims = primitives(key, g, w, params)
+            prims = primitives(key, g, w, params, shape)
             need = needed_entries(prims, shape, tile=_TILE, bulge=bulge, periodic=True)
             pairs = max(pairs, need)
         entries.append(2 * pairs)
@@ -218,7 +218,7 @@ def _binned(key, sims, levels, layout: _Layout):
     ):
         opts = _options(i, layout)
         k_perturb, k_noise = jax.random.split(k)
-        prims = primitives(k_perturb, graph, w, params)
+        prims = primitives(k_perturb, graph, w, params, layout.shape)
         bins = bin_primitives(
             prims, layout.shape, tile=_TILE, span=opts.span, bulge=opts.bulge, periodic=True,
             entries=opts.entries,

@@ -36,7 +36,7 @@ from tqdm import tqdm
 
 from jface import _checks
 from jface.noise import counter_bits, counter_uniform
-from jface.wrinkles._graph import PoreGraph
+from jface.wrinkles._graph import PoreGraph, _trim
 from jface.wrinkles._params import WrinkleParams
 from jface.wrinkles._textures import at
 
@@ -291,11 +291,22 @@ def simulate(
     else:
         size, active = min(N_SAMPLES, max(n_edges, 1)), samples_per_step(graph).astype(jnp.int32)
     w = jnp.where(graph.edge_mask, w0, 0.0)
+    full = graph.edge_mask.shape[0]
+    if not any(_checks.is_traced(x) for x in jax.tree.leaves(graph)):
+        # run on the slots the data use: every step's updates cost O(edge slots)
+        graph = _trim(
+            graph,
+            max(int(graph.node_count), 1),
+            max(int(graph.edge_count), 1),
+            max(int(jnp.max(graph.degree)), 1),
+            int(jnp.max(jnp.sum(graph.crossing_mask, -1), initial=0)),
+        )
+        w = w[: graph.edge_mask.shape[0]]
     for first in tqdm(range(0, n_steps, chunk), desc="simulate", unit="chunk",
                       disable=not progress):  # fmt: skip
         steps = min(chunk, n_steps - first)
         w = _simulate(key, graph, params, w, jnp.uint32(first), active, steps, size)
-    return jnp.clip(w, 0.0, 1.0)
+    return jnp.pad(jnp.clip(w, 0.0, 1.0), (0, full - w.shape[0]))
 
 
 @functools.partial(jax.jit, static_argnums=(6, 7))
@@ -324,13 +335,13 @@ def _simulate(key, graph, params, w0, first, n_active, n_steps, n_samples):
             lambda: jnp.zeros((n_nodes, d * d), jnp.float32),
         )
 
-    # Eq. 3's weight-independent terms are fixed for the run; when the pores are fewer than the
-    # samples per step, scoring every pore once per step and gathering the sampled rows is cheaper
-    # than scoring each sample (the same numbers either way)
+    # Eq. 3's weight-independent terms are fixed for the run: computed once per pore. When the
+    # pores are fewer than the samples per step, scoring every pore once per step and gathering
+    # the sampled rows is cheaper than scoring each sample (the same numbers either way)
+    all_nodes = jnp.arange(n_nodes, dtype=jnp.int32)
+    terms = _static_terms(graph, params, all_nodes)
     score_all = n_nodes <= n_samples
     if score_all:
-        all_nodes = jnp.arange(n_nodes, dtype=jnp.int32)
-        terms = _static_terms(graph, params, all_nodes)
         kernel = None if table is None else table.reshape(n_nodes, d, d)
 
     # counter-based random numbers: threefry's would be 40% of the run on the CPU
@@ -346,7 +357,9 @@ def _simulate(key, graph, params, w0, first, n_active, n_steps, n_samples):
             cum = jnp.cumsum(_scores(graph, params, terms, w, all_nodes, kernel, True), -1).T
             columns = [cum[j][nodes] for j in range(d)]
         else:
-            cum = jnp.cumsum(half_edge_scores(graph, params, w, nodes, table), axis=-1)
+            rows = jax.tree.map(lambda a: a[nodes], terms)  # 2-D row gathers: fast on CPU
+            kern = None if table is None else table[nodes].reshape(n_samples, d, d)
+            cum = jnp.cumsum(_scores(graph, params, rows, w, nodes, kern), axis=-1)
             columns = [cum[:, j] for j in range(d)]
         total = columns[-1]
         u = counter_uniform(seed, 2 * t + 1, (n_samples,)) * total  # u < total when total > 0
