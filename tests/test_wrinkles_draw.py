@@ -500,3 +500,19 @@ def test_periodic_map_tiles_without_a_seam(level):
         inner += [np.diff(m, axis=1).ravel(), np.diff(m, axis=0).ravel()]
     ratio = np.mean(np.concatenate(seam) ** 2) / np.mean(np.concatenate(inner) ** 2)
     assert abs(ratio - 1) < 0.1
+
+
+def test_sub_pixel_wrinkle_fades_instead_of_a_hairline():
+    """A wrinkle far narrower than a pixel, through a row of pixel centres, is drawn at the
+    pixel footprint with its depth × width kept: a faint valley, not a full-depth hairline."""
+    y = 64.5 / 128  # the centres of pixel row 64
+    graph = build_graph(make_pores(np.array([[0.3, y], [0.7, y]], np.float32), radius=0.4), k=1)
+    params = WrinkleParams(d=0.002, wrinkle_width=0.1, pore_width=0.01, sperturb=0.001,
+                           snoise=0.001, scale=0.9)  # fmt: skip
+    weights = jnp.zeros(graph.edge_mask.shape, jnp.float32).at[0].set(1.0)
+    out = np.asarray(draw(jax.random.key(0), graph, weights, params, (128, 128), n_hat=1))
+    half_width = 1.0 * 0.1 * 0.002 * 128  # 0.026 px
+    fade = half_width / np.hypot(half_width, FOOTPRINT)
+    column = out[:, 64]
+    assert column[64] == pytest.approx(-0.9 * fade, abs=0.0015)  # ≈ 3 % of the full depth 0.9
+    assert abs(column[63]) > 1e-3 and abs(column[65]) > 1e-3  # spread over the footprint

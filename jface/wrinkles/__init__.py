@@ -52,8 +52,10 @@ from jface.wrinkles._simulation import (
     N_SAMPLES,
     angle_distance,
     continuation_kernel,
+    converged_steps,
     half_edge_scores,
     orientation_density,
+    samples_per_step,
     simulate,
 )
 from jface.wrinkles._synthesis import (
@@ -61,6 +63,7 @@ from jface.wrinkles._synthesis import (
     Level,
     Simulated,
     Synthesis,
+    simulate_levels,
     synthesize,
     synthesize_bands,
 )
@@ -88,6 +91,7 @@ __all__ = [
     "blend_with_scan",
     "build_graph",
     "continuation_kernel",
+    "converged_steps",
     "default_capacity",
     "draw",
     "draw_bands",
@@ -111,9 +115,11 @@ __all__ = [
     "pore_strength",
     "radius_map_from_mesh",
     "sample_pores",
+    "samples_per_step",
     "save_params",
     "shape_function",
     "simulate",
+    "simulate_levels",
     "stack_params",
     "synthesize",
     "synthesize_bands",

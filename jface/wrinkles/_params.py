@@ -85,7 +85,8 @@ class WrinkleParams(eqx.Module):
     the pore for node terms, at the edge midpoint for ``deposit`` and ``decay``). Defaults are the
     paper's: the four reward/penalty terms 0, ``deposit`` 0.25, ``decay`` 0.5, σ = σ_cspread = 0.3,
     Δt = 0.03. Table 1 gives no defaults for the drawing rows; ours draw moderately wide wrinkles
-    with visible pores, mild perturbation and little additive noise.
+    with pores as visible pits (found by :func:`find_pores` on a map with ≥ 20 px between pores),
+    mild perturbation and little additive noise.
 
     Attributes:
         d: α_d, average pore distance (minimum distance of the Poisson-disk sampling) in UV units.
@@ -127,8 +128,8 @@ class WrinkleParams(eqx.Module):
     sigma_cont: Float[Array, "*shape"] = _field(0.3)
     dt: Float[Array, "*shape"] = _field(0.03)
     wrinkle_width: Float[Array, "*shape"] = _field(0.3)
-    pore_width: Float[Array, "*shape"] = _field(0.15)
-    dmin: Float[Array, "*shape"] = _field(0.2)
+    pore_width: Float[Array, "*shape"] = _field(0.3)
+    dmin: Float[Array, "*shape"] = _field(0.4)
     blend: Float[Array, "*shape"] = _field(0.5)
     skew: Float[Array, "*shape"] = _field(0.0)
     cushion: Float[Array, "*shape"] = _field(0.0)
