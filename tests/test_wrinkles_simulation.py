@@ -74,7 +74,12 @@ def _crossing_weight(graph, w):
 
 
 def test_crossing_penalty_lowers_crossing_weight(graph):
-    assert _crossing_weight(graph, run(graph, cross=1.0)) < 0.3 * _crossing_weight(
+    # against the printed orientation term (at most 1 + α_s) the penalty acts strongly on a
+    # directional sampler and less on an even one
+    assert _crossing_weight(graph, run(graph, cross=1.0, s=0.0)) < 0.3 * _crossing_weight(
+        graph, run(graph, s=0.0)
+    )
+    assert _crossing_weight(graph, run(graph, cross=1.0)) < 0.9 * _crossing_weight(
         graph, run(graph)
     )
 
@@ -257,3 +262,27 @@ def test_weights_do_not_depend_on_capacity():
     jitted = jax.jit(lambda g: simulate(jax.random.key(6), g, params, n_steps=40))
     np.testing.assert_allclose(np.asarray(jitted(large))[:e], w_small, atol=1e-6)
     np.testing.assert_allclose(np.asarray(jitted(small))[:e], w_small, atol=1e-6)
+
+
+def test_orientation_term_as_printed(graph):
+    """Without reward or penalty terms Eq. 3 is ``d^(−α_dist) (1 − α_cont)(α_s + exp(−|θ −
+    α_θ|²_π / σ²))`` exactly as printed (not a normalised density), per pore up to the
+    distance normalisation."""
+    from jface.wrinkles import half_edge_scores, orientation_density, orientation_weight
+
+    params = WrinkleParams(theta=0.8, s=0.7, dist=0.0)
+    nodes = jnp.arange(int(graph.node_count))
+    w = jnp.zeros(graph.edge_mask.shape, jnp.float32)
+    got = np.asarray(half_edge_scores(graph, params, w, nodes))
+    angle = np.asarray(graph.half_angle)[: len(nodes)]
+    diff = np.abs((angle - 0.8 + np.pi / 2) % np.pi - np.pi / 2)
+    want = np.where(np.asarray(graph.half_mask)[: len(nodes)], 0.7 + np.exp(-(diff**2) / 0.09), 0)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    # the density form integrates to one over [0, 2π)
+    theta = np.linspace(0, 2 * np.pi, 20001, dtype=np.float32)[:-1]
+    dens = np.asarray(orientation_density(theta, 0.8, 0.7, 0.3))
+    assert np.mean(dens) * 2 * np.pi == pytest.approx(1.0, rel=1e-4)
+    np.testing.assert_allclose(
+        np.asarray(orientation_weight(theta, 0.8, 0.7, 0.3)) / dens, 2 * np.pi * 0.7
+        + 2 * 0.3 * np.sqrt(np.pi) * math.erf(np.pi / 0.6), rtol=1e-5,
+    )  # fmt: skip

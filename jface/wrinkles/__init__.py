@@ -55,6 +55,7 @@ from jface.wrinkles._simulation import (
     converged_steps,
     half_edge_scores,
     orientation_density,
+    orientation_weight,
     samples_per_step,
     simulate,
 )
@@ -109,6 +110,7 @@ __all__ = [
     "make_pores",
     "mellowmax",
     "orientation_density",
+    "orientation_weight",
     "params_from_json",
     "params_to_json",
     "perlin_variation",

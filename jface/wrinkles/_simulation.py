@@ -12,9 +12,11 @@ same weights (they run in parallel, as in the paper's CUDA kernel); when ``m`` o
 the deposit compounds exactly: ``W ← 1 − (1 − W)(1 − Δt α_deposit)^m``. Then the global decay
 ``W ← W (1 − Δt α_decay N / |E|)`` (Eq. 8) is applied. The whole run is one ``lax.scan``.
 
-Choices where the paper is silent: ``P[θ]`` of Eq. 1 is normalised to a probability density
-over ``[0, 2π)`` (``∫ α_s + exp(−|θ − α_θ|²_π / σ²) dθ = 2π α_s + 2σ√π erf(π / 2σ)``) before it
-enters Eq. 3 as ``p_pref``; ``d_h^(−α_dist)`` is evaluated as ``(d_h / min_h' d_h')^(−α_dist)``,
+``P[θ]`` of Eq. 1 enters Eq. 3 as ``p_pref`` as printed, ``α_s + exp(−|θ − α_θ|²_π / σ²)``
+(:func:`orientation_weight`; its normalised form, :func:`orientation_density`, is that divided by
+``2π α_s + 2σ√π erf(π / 2σ)``, a factor of 1.06 at α_s = 0 to 7.35 at α_s = 1 against the
+other terms). Where the paper is silent: ``d_h^(−α_dist)`` is evaluated as
+``(d_h / min_h' d_h')^(−α_dist)``,
 which leaves the distribution unchanged (a positive factor per pore) and avoids overflow for tiny
 UV lengths.
 Parameter textures are looked up at the pore for the node terms and at the edge midpoint for
@@ -51,16 +53,22 @@ def angle_distance(a: ArrayLike, b: ArrayLike, period: float) -> Array:
     return jnp.abs(jnp.mod(a - b + half, period) - half)
 
 
+def orientation_weight(angle: ArrayLike, theta: ArrayLike, s: ArrayLike, sigma: ArrayLike) -> Array:
+    """The orientation sampler of Eq. 1 as printed, ``α_s + exp(−|θ − α_θ|²_π / σ²)``: the
+    ``p_pref`` of Eq. 3 (5). Undirected (``P[θ] = P[θ + π]``)."""
+    d = angle_distance(angle, theta, math.pi)
+    return s + jnp.exp(-(d * d) / (sigma * sigma))
+
+
 def orientation_density(
     angle: ArrayLike, theta: ArrayLike, s: ArrayLike, sigma: ArrayLike
 ) -> Array:
-    """The orientation sampler ``P[θ]`` of Eq. 1–2, normalised over ``[0, 2π)``; undirected
-    (``P[θ] = P[θ + π]``)."""
-    d = angle_distance(angle, theta, math.pi)
+    """:func:`orientation_weight` normalised to a probability density over ``[0, 2π)`` (divided
+    by ``2π α_s + 2σ√π erf(π / 2σ)``); undirected."""
     z = 2.0 * math.pi * s + 2.0 * sigma * math.sqrt(math.pi) * jax.scipy.special.erf(
         math.pi / (2.0 * sigma)
     )
-    return (s + jnp.exp(-(d * d) / (sigma * sigma))) / z
+    return orientation_weight(angle, theta, s, sigma) / z
 
 
 def _gauss(x, sigma):
@@ -125,8 +133,9 @@ def _static_terms(graph: PoreGraph, params: WrinkleParams, nodes) -> _Terms:
     dist, cont = node(params.dist), node(params.cont)
     hm = graph.half_mask[nodes]
     hl = graph.half_length[nodes]
-    # Eq. 5: orientation sampler
-    p_pref = orientation_density(graph.half_angle[nodes], theta, s, sigma)
+    # Eq. 5: the orientation sampler as printed (not normalised: its balance against the
+    # continuation and crossing terms is the paper's)
+    p_pref = orientation_weight(graph.half_angle[nodes], theta, s, sigma)
     ref = jnp.min(jnp.where(hm, hl, jnp.inf), axis=-1, keepdims=True)
     ratio = jnp.where(hm, hl / jnp.where(jnp.isfinite(ref), ref, 1.0), 1.0)
     dist_factor = jnp.exp(-dist * jnp.log(jnp.maximum(ratio, 1e-12)))
@@ -185,8 +194,11 @@ CHUNK = 256
 
 def samples_per_step(graph: PoreGraph) -> int | Array:
     """The paper's ``N``: 50,000 pores per step, or ``|E|`` on smaller graphs (never the array
-    capacity, so a result does not depend on how large a buffer was allocated)."""
-    return jnp.minimum(N_SAMPLES, jnp.maximum(graph.edge_count, 1))
+    capacity, so a result does not depend on how large a buffer was allocated). An ``int`` for a
+    concrete graph, else a traced count."""
+    if _checks.is_traced(graph.edge_count):
+        return jnp.minimum(N_SAMPLES, jnp.maximum(graph.edge_count, 1))
+    return min(N_SAMPLES, max(int(graph.edge_count), 1))
 
 
 def converged_steps(graph: PoreGraph, params: WrinkleParams, n_samples: int | None = None) -> int:
@@ -197,7 +209,7 @@ def converged_steps(graph: PoreGraph, params: WrinkleParams, n_samples: int | No
     if any(_checks.is_traced(x) for x in leaves):
         raise TypeError("converged_steps needs a concrete graph and parameters (pass n_steps)")
     count = max(int(graph.edge_count), 1)
-    n = int(samples_per_step(graph)) if n_samples is None else n_samples
+    n = samples_per_step(graph) if n_samples is None else n_samples
     rate = max(float(np.min(np.asarray(params.dt) * np.asarray(params.decay))), _MIN_RATE)
     steps = math.ceil(TIME_CONSTANTS * count / (n * rate))
     return -(-steps // CHUNK) * CHUNK
@@ -265,7 +277,7 @@ def simulate(
     if concrete:
         count = int(graph.edge_count)
         rate = float(np.max(np.asarray(params.dt))) * float(np.max(np.asarray(params.decay)))
-        worst = rate * (int(samples_per_step(graph)) if n_samples is None else n_samples)
+        worst = rate * (samples_per_step(graph) if n_samples is None else n_samples)
         if count > 0 and worst > count:
             raise ValueError(
                 f"n_samples={n_samples} is too large for a graph of {count} edges: the decay "
@@ -286,10 +298,11 @@ def simulate(
     if n_samples is not None:
         size, active = n_samples, jnp.int32(n_samples)
     elif concrete:
-        size = int(samples_per_step(graph))
+        size = samples_per_step(graph)
         active = jnp.int32(size)
     else:
-        size, active = min(N_SAMPLES, max(n_edges, 1)), samples_per_step(graph).astype(jnp.int32)
+        size = min(N_SAMPLES, max(n_edges, 1))
+        active = jnp.asarray(samples_per_step(graph), jnp.int32)
     w = jnp.where(graph.edge_mask, w0, 0.0)
     full = graph.edge_mask.shape[0]
     if not any(_checks.is_traced(x) for x in jax.tree.leaves(graph)):
@@ -298,8 +311,8 @@ def simulate(
             graph,
             max(int(graph.node_count), 1),
             max(int(graph.edge_count), 1),
-            max(int(jnp.max(graph.degree)), 1),
-            int(jnp.max(jnp.sum(graph.crossing_mask, -1), initial=0)),
+            max(int(np.max(np.sum(np.asarray(graph.half_mask), -1))), 1),
+            int(np.max(np.sum(np.asarray(graph.crossing_mask), -1), initial=0)),
         )
         w = w[: graph.edge_mask.shape[0]]
     for first in tqdm(range(0, n_steps, chunk), desc="simulate", unit="chunk",

@@ -77,8 +77,8 @@ def _texture_in_frame(texture, margin):
     if texture.ndim == 0 or margin == 0:
         return texture
     h, w = texture.shape
-    ys = ((jnp.arange(h) + 0.5) / h) * (1 + 2 * margin) - margin
-    xs = ((jnp.arange(w) + 0.5) / w) * (1 + 2 * margin) - margin
+    ys = ((jnp.arange(h, dtype=jnp.float32) + 0.5) / h) * (1 + 2 * margin) - margin
+    xs = ((jnp.arange(w, dtype=jnp.float32) + 0.5) / w) * (1 + 2 * margin) - margin
     return lookup(texture, jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), -1), periodic=False)
 
 
