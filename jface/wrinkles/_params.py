@@ -28,9 +28,10 @@ from jface import _checks
 #: of the orientation term against the continuation term, which needs α_cont on [0, 1], and at
 #: 0.01 the continuation moves the weights by 0.002 on average although Fig. 6 shows a clear
 #: effect (docs/wrinkles/convergence.png). ``deposit`` uses the range stated in §3.1.2
-#: ([0.01, 1.0]; Table 1's [0.3, 0.9] excludes the paper's own default 0.25). ``decay`` (fixed to 0.5 in the paper, not in
-#: Table 1), ``sigma`` (σ of Eq. 1), ``sigma_cont`` (σ_cspread of Eq. 4) and ``dt`` (Δt of
-#: Eq. 7–8) are the method's constants, exposed with the ranges given here.
+#: ([0.01, 1.0]; Table 1's [0.3, 0.9] excludes the paper's own default 0.25). ``decay`` (fixed
+#: to 0.5 in the paper, not in Table 1), ``sigma`` (σ of Eq. 1), ``sigma_cont`` (σ_cspread of
+#: Eq. 4) and ``dt`` (Δt of Eq. 7–8) are the method's constants, exposed with the ranges given
+#: here.
 PARAMETER_RANGES: dict[str, tuple[float, float]] = {
     "d": (0.001, 0.05),
     "theta": (0.0, 2.0 * math.pi),
