@@ -43,7 +43,7 @@ from jface.wrinkles._drawing import (
 from jface.wrinkles._graph import PoreGraph, build_graph, covering_spec, stack_graphs
 from jface.wrinkles._params import PARAMETER_RANGES, WrinkleParams
 from jface.wrinkles._sampling import sample_pores
-from jface.wrinkles._simulation import simulate
+from jface.wrinkles._simulation import N_SAMPLES, simulate
 
 #: Per-level parameters the paper fits (§4.2.2), besides α_d and one noise level.
 LEVEL_NAMES = (
@@ -95,6 +95,7 @@ class _Layout(eqx.Module):
     graphs: tuple[PoreGraph, PoreGraph]
     size: tuple[int, int] = eqx.field(static=True)
     shape: tuple[int, int] = eqx.field(static=True)
+    n_samples: tuple[int, int] = eqx.field(static=True)
     n_steps: int = eqx.field(static=True)
     span: tuple[int, int] = eqx.field(static=True)
     entries: tuple[int, int] = eqx.field(static=True)
@@ -137,13 +138,19 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
         for d in d_values
     ]
     graphs = tuple(stack_graphs([g[level] for g in built]) for level in range(2))
-    entries = _draw_entries(k1, d_values, graphs, shape, n_steps)
+    # the simulation's N: a fixed setting of the fit, about twice the densest graph's edges, so
+    # that the fit's 50 steps carve the patch (N = |E| would need ~5x the steps; the paper's
+    # 50,000 on a patch of a few thousand edges decays by a quarter per step)
+    n_samples = tuple(min(N_SAMPLES, specs[level].k * caps[level]) for level in range(2))
+    entries = _draw_entries(k1, d_values, graphs, shape, n_samples, n_steps)
     # the bins enumerate pairs, so a primitive may touch every tile at no extra cost
     span = (max(shape) // _TILE,) * 2
-    return _Layout(jnp.asarray(d_values), graphs, tuple(size), shape, n_steps, span, entries)
+    return _Layout(
+        jnp.asarray(d_values), graphs, tuple(size), shape, n_samples, n_steps, span, entries
+    )
 
 
-def _draw_entries(key, d_values, graphs, shape, n_steps) -> tuple[int, int]:
+def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int, int]:
     """Binned (primitive, tile) pairs per level that draw the densest and the sparsest α_d of
     the grid with the simulation's default weights and the drawing fields at ``_WIDE``, with
     headroom (2x)."""
@@ -153,7 +160,7 @@ def _draw_entries(key, d_values, graphs, shape, n_steps) -> tuple[int, int]:
         for i in (0, len(d_values) - 1):
             g = jax.tree.map(lambda a, i=i: a[i], graphs[level])
             params = WrinkleParams(d=float(d_values[i]) / (1 + level), **_WIDE)
-            w = simulate(key, g, params, n_steps=n_steps)
+            w = simulate(key, g, params, n_steps=n_steps, n_samples=n_samples[level])
             prims = primitives(key, g, w, params, shape)
             need = needed_entries(prims, shape, tile=_TILE, bulge=bulge, periodic=True)
             pairs = max(pairs, need)
@@ -166,10 +173,9 @@ def _simulate(key, levels: tuple[WrinkleParams, WrinkleParams], layout: _Layout)
     k = jax.random.split(key, 2)
     d, graphs = layout.select(levels[0].d)
     levels = (_with(levels[0], {"d": d}), _with(levels[1], {"d": d / 2}))
-    # the paper's N (or |E| when smaller) per graph, whatever the stacked capacity
     sims = tuple(
-        (g, simulate(kk, g, p, n_steps=layout.n_steps))
-        for kk, g, p in zip(k, graphs, levels, strict=True)
+        (g, simulate(kk, g, p, n_steps=layout.n_steps, n_samples=n))
+        for kk, g, p, n in zip(k, graphs, levels, layout.n_samples, strict=True)
     )
     return sims, levels
 
