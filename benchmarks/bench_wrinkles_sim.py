@@ -21,6 +21,7 @@ import numpy as np
 from _timing import best_of, report
 
 from jface.wrinkles import WrinkleParams, build_graph, sample_pores, simulate
+from jface.wrinkles._simulation import converged_steps
 
 DENSITY = 0.654  # maximal Poisson-disk pores per r² (measured)
 
@@ -178,14 +179,37 @@ def bench_simulation(graph, steps: int, n: int) -> None:
            goal_edge_samples_per_s=1e6)  # fmt: skip
 
 
+EDGES_PER_PORE = 3.2  # valid edges per pore of the kNN graph (k = 6, measured)
+
+
+def bench_converged(edges: int) -> None:
+    """The default (converged) simulation on a graph of about ``edges`` edges: wall time, steps
+    and the weights' statistics; the goal is ≤ 3 min for 1M edges on the CPU."""
+    graph = build_graph(sample_pores(jax.random.key(1), radius_for(int(edges / EDGES_PER_PORE)),
+                                     periodic=True))  # fmt: skip
+    params = WrinkleParams(theta=0.0, s=0.2)
+    steps = converged_steps(graph, params)
+    w, total = timed(lambda: simulate(jax.random.key(2), graph, params))
+    w = np.asarray(w)[: int(graph.edge_count)]
+    report(f"converged trail simulation (default), {int(graph.edge_count)} edges", total,
+           steps=steps, mean_w=round(float(w.mean()), 4),
+           share_above_half=round(float((w > 0.5).mean()), 4), goal_s=180)  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pores", type=int, default=1_000_000, help="pores of the large cases")
     parser.add_argument("--reference-pores", type=int, default=100_000,
                         help="pores of the cases with a reference")  # fmt: skip
     parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--converged-only", action="store_true",
+                        help="only the default (converged) runs at 130k and 1M edges")  # fmt: skip
     args = parser.parse_args()
     print(f"# devices: {jax.devices()}", flush=True)
+    for edges in (130_000, 1_000_000):
+        bench_converged(edges)
+    if args.converged_only:
+        return
     bench_sampling(args.reference_pores, reference=True)
     small = bench_graph(args.reference_pores, reference=True)
     bench_simulation(small, args.steps, 50_000)

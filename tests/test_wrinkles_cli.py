@@ -15,7 +15,7 @@ def test_simulate_writes_graph_weights_and_picture(tmp_path, capsys):
     save_params(params, [WrinkleParams(d=0.04, theta=0.5, s=0.1), WrinkleParams(d=0.02)])
     out = tmp_path / "run"
     args = ["wrinkles", "simulate", "--out", str(out), "--params", str(params), "--cross", "0.5"]
-    assert main([*args, "--periodic", "--steps", "20", "--size", "256", "--seed", "3"]) == 0
+    assert main([*args, "--periodic", "--size", "256", "--seed", "3"]) == 0  # converged
     arrays, meta = load_arrays(out / "wrinkles.npz", kind="WrinkleGraph")
     assert meta["seed"] == 3 and len(meta["levels"]) == 2
     assert meta["levels"][0]["cross"] == 0.5 and meta["levels"][1]["d"] == 0.02

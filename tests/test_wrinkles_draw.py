@@ -26,6 +26,7 @@ from jface.wrinkles import (
     simulate,
 )
 from jface.wrinkles._drawing import (
+    FOOTPRINT,
     N_VERTICES,
     DrawOptions,
     bin_primitives,
@@ -62,9 +63,11 @@ def _straight(n_hat, bulge=True):
                            fnoise=256.0, scale=0.5)  # fmt: skip
     weights = jnp.zeros(graph.edge_mask.shape, jnp.float32).at[0].set(1.0)
     out = draw(jax.random.key(0), graph, weights, params, (128, 128), n_hat=n_hat, bulge=bulge)
-    column = np.asarray(out, np.float64)[:, 64] / 0.5  # x = 0.504, far from both pores
-    dist = np.abs((np.arange(128) + 0.5) / 128 - 0.5) / (0.6 * 0.05)  # in valley half-widths
-    return column, dist
+    column = np.asarray(out, np.float64)[:, 64]  # x = 0.504, far from both pores
+    # drawn at the pixel footprint: widened to sqrt(w² + f²), depth lowered by w / sqrt(w² + f²)
+    width = np.hypot(0.6 * 0.05, FOOTPRINT / 128)
+    dist = np.abs((np.arange(128) + 0.5) / 128 - 0.5) / width  # in valley half-widths
+    return column, dist, 0.5 * (0.6 * 0.05) / width  # α_scale times the footprint's fade
 
 
 def _eq9(x, bulge):
@@ -75,14 +78,16 @@ def _eq9(x, bulge):
 
 @pytest.mark.parametrize("bulge", [True, False])
 def test_straight_wrinkle_has_the_eq9_profile(bulge):
-    column, dist = _straight(n_hat=1, bulge=bulge)  # standard mellowmax: one fragment = value
-    np.testing.assert_allclose(column, _eq9(dist, bulge), atol=2e-6)
-    assert column.min() < -0.75 and (column.max() > 0.13 if bulge else column.max() == 0)
+    column, dist, depth = _straight(n_hat=1, bulge=bulge)  # standard mellowmax: one = value
+    np.testing.assert_allclose(column, depth * _eq9(dist, bulge), atol=2e-6)
+    assert column.min() < -0.75 * depth and (
+        column.max() > 0.13 * depth if bulge else column.max() == 0
+    )
 
 
 def test_straight_wrinkle_blends_per_eq10_11():
-    column, dist = _straight(n_hat=16)
-    s = _eq9(dist, True)
+    column, dist, depth = _straight(n_hat=16)
+    s = depth * _eq9(dist, True)  # α_scale multiplies the fragments before the blend
     beta = 20.0
 
     def mm16(v):  # Eq. 10 with one fragment of value v ≥ 0 and N̂_f = 16
@@ -142,7 +147,7 @@ def test_pore_strength_eq12_13(level):
 def _brute_force(key, graph, weights, params, shape):
     """Every primitive against every pixel in float64 numpy, blended with Eq. 10–11 directly."""
     k_perturb, _ = jax.random.split(key)
-    p = primitives(k_perturb, graph, weights, params)
+    p = primitives(k_perturb, graph, weights, params, shape)
     p = p._replace(**{f: np.asarray(getattr(p, f), np.float64) for f in p._fields if f != "valid"})
     p = p._replace(valid=np.asarray(p.valid))
     h, w = shape
@@ -186,8 +191,8 @@ def test_tiled_rasteriser_matches_brute_force(level):
     quiet = params.replace(snoise=0.001, scale=0.9)
     got = np.asarray(draw(key, graph, weights, quiet, (N, N), tile=8, capacity=4), np.float64)
     ref = _brute_force(key, graph, weights, quiet, (N, N))
-    noise_bound = 0.9 * 0.001 * 1.5
-    assert np.max(np.abs(got / 0.9 - ref)) < noise_bound / 0.9 + 1e-5
+    noise_bound = 0.001 * 1.5  # α_scale is in the primitives: only the additive noise is left
+    assert np.max(np.abs(got - ref)) < noise_bound + 1e-5
     assert ref.min() < -0.2 and ref.max() > 0.005  # there is something to compare
     # another tile size and capacity give the same map (performance settings only)
     other = draw(key, graph, weights, quiet, (N, N), tile=N, capacity=7)
@@ -199,7 +204,7 @@ def test_packed_bins_and_passes_as_needed_draw_the_same_map(level):
     passes as it needs (the swarm's fast path), change nothing but the cost."""
     graph, weights, params = level
     key = jax.random.key(5)
-    prims = primitives(key, graph, weights, params)
+    prims = primitives(key, graph, weights, params, (N, N))
     sizes = {"tile": 8, "bulge": True, "periodic": True}
     span = needed_span(prims, (N, N), **sizes)
     pairs = needed_entries(prims, (N, N), **sizes)
@@ -429,3 +434,85 @@ def test_radius_map_bad_input(unchecked):
         radius_map_from_mesh(mesh, 0)
     with pytest.raises(ValueError, match="maps every triangle to a point"):
         radius_map_from_mesh(mesh._replace(uv=np.zeros_like(mesh.uv)), 64)
+
+
+# ---------------------------------------------------------------- α_scale, perturbation, seams
+
+
+def test_scale_multiplies_the_fragments_before_the_blend(level):
+    """α_scale scales every wrinkle and pore strength (and the cushion) before Eq. 10–11: a map
+    drawn with α_scale is the map of primitives drawn at another α_scale and pre-scaled."""
+    graph, weights, params = level
+    key = jax.random.key(2)
+    low, high = params.replace(scale=0.3), params.replace(scale=0.9)
+    p_low = primitives(key, graph, weights, low, (N, N))
+    p_high = primitives(key, graph, weights, high, (N, N))
+    np.testing.assert_allclose(p_high.strength, 3.0 * p_low.strength, rtol=1e-5)
+    np.testing.assert_allclose(p_high.cushion, 3.0 * p_low.cushion, rtol=1e-5)
+    prescaled = p_low._replace(strength=3.0 * p_low.strength, cushion=3.0 * p_low.cushion)
+    opts = DrawOptions(tile=8, span=N // 8, passes=64, capacity=16)
+    bins = bin_primitives(prescaled, (N, N), tile=8, span=N // 8, bulge=True, periodic=True)
+    drawn = render(key, p_high, bins, high, (N, N), opts, True)
+    np.testing.assert_allclose(drawn, render(key, prescaled, bins, high, (N, N), opts, True),
+                               atol=1e-6)  # fmt: skip
+    assert float(jnp.std(drawn)) > 0.01
+    # the blend is non-linear: scaling the finished map instead gives another map
+    quiet = params.replace(snoise=0.001)
+    m_low = np.asarray(draw(key, graph, weights, quiet.replace(scale=0.3), (N, N), tile=8))
+    m_high = np.asarray(draw(key, graph, weights, quiet.replace(scale=0.9), (N, N), tile=8))
+    assert np.max(np.abs(m_high - 3.0 * m_low)) > 0.05
+
+
+def test_wrinkles_stay_joined_at_their_pores(level):
+    """One perturbation field moves the pores and the wrinkle ends with them: every drawn
+    wrinkle starts and ends exactly at its pores' drawn centres, while the field does move
+    the geometry (by up to α_sperturb · α_wrinkle-width · α_d)."""
+    graph, weights, params = level
+    prims = primitives(jax.random.key(7), graph, weights, params, (N, N))
+    e, n = int(graph.edge_count), int(graph.node_count)
+    m = graph.edge_mask.shape[0]
+    pore = np.asarray(prims.p0)[m : m + n]
+    start = np.asarray(prims.p0)[:e]
+    end = start + np.asarray(prims.delta)[:e]
+    nodes = np.asarray(graph.edge_nodes)[:e]
+
+    def gap(a, b):  # periodic distance
+        d = a - b
+        return np.abs(d - np.round(d)).max()
+
+    assert gap(start, pore[nodes[:, 0]]) < 1e-6  # float32 rounding, far below a valley width
+    assert gap(end, pore[nodes[:, 1]]) < 1e-6
+    assert np.all(np.asarray(prims.offsets)[:e][:, [0, -1]] == 0)
+    moved = np.linalg.norm(pore - np.asarray(graph.positions)[:n], axis=-1)
+    reach = float(params.sperturb * params.wrinkle_width * params.d)
+    assert 0.1 * reach < moved.max() <= 1.5 * reach
+    assert np.abs(np.asarray(prims.offsets)[:e]).max() > 0.05 * reach
+
+
+def test_periodic_map_tiles_without_a_seam(level):
+    """Perturbation and additive noise are periodic on periodic maps: the squared difference
+    across the wrap-around edges is within 10 % of that between neighbouring interior pixels."""
+    graph, weights, params = level
+    seam, inner = [], []
+    for seed in range(4):  # 2048 pixel pairs across the seams: a few % sampling noise
+        m = np.asarray(draw(jax.random.key(seed), graph, weights, params, (256, 256)), np.float64)
+        seam += [m[:, 0] - m[:, -1], m[0] - m[-1]]
+        inner += [np.diff(m, axis=1).ravel(), np.diff(m, axis=0).ravel()]
+    ratio = np.mean(np.concatenate(seam) ** 2) / np.mean(np.concatenate(inner) ** 2)
+    assert abs(ratio - 1) < 0.1
+
+
+def test_sub_pixel_wrinkle_fades_instead_of_a_hairline():
+    """A wrinkle far narrower than a pixel, through a row of pixel centres, is drawn at the
+    pixel footprint with its depth × width kept: a faint valley, not a full-depth hairline."""
+    y = 64.5 / 128  # the centres of pixel row 64
+    graph = build_graph(make_pores(np.array([[0.3, y], [0.7, y]], np.float32), radius=0.4), k=1)
+    params = WrinkleParams(d=0.002, wrinkle_width=0.1, pore_width=0.01, sperturb=0.001,
+                           snoise=0.001, scale=0.9)  # fmt: skip
+    weights = jnp.zeros(graph.edge_mask.shape, jnp.float32).at[0].set(1.0)
+    out = np.asarray(draw(jax.random.key(0), graph, weights, params, (128, 128), n_hat=1))
+    half_width = 1.0 * 0.1 * 0.002 * 128  # 0.026 px
+    fade = half_width / np.hypot(half_width, FOOTPRINT)
+    column = out[:, 64]
+    assert column[64] == pytest.approx(-0.9 * fade, abs=0.0015)  # ≈ 3 % of the full depth 0.9
+    assert abs(column[63]) > 1e-3 and abs(column[65]) > 1e-3  # spread over the footprint

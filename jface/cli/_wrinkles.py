@@ -28,19 +28,19 @@ from jface.render import shade
 from jface.wrinkles import (
     WrinkleParams,
     blend_with_scan,
-    build_graph,
     extract_orientation,
     find_pores,
     load_params,
     make_pores,
     radius_map_from_mesh,
-    sample_pores,
     save_params,
-    simulate,
+    simulate_levels,
     synthesize,
     synthesize_bands,
 )
 
+#: α_s and α_scale of the levels made without --params, coarse to fine
+LEVEL_S, LEVEL_SCALE = (0.05, 0.15, 0.3, 0.5), (0.6, 0.35, 0.2, 0.12)
 _OVERRIDES = ("d", "theta", "s", "dist", "cont", "sim", "cross", "deposit", "decay")
 BANDED_ABOVE = 4096  #: maps with more rows are drawn and written band by band (bounded memory)
 _PREVIEW = 2048  # side of the PNG / mesh preview of a banded map
@@ -64,8 +64,9 @@ def register(subparsers) -> None:
     sim.add_argument("--levels", type=int, default=1, help="levels when no --params (α_d halves)")
     sim.add_argument("--radius-map", help="EXR radius scaling map R (single channel, > 0)")
     sim.add_argument("--periodic", action="store_true", help="wrap the unit square (tileable)")
-    sim.add_argument("--steps", type=int, default=50, help="simulation steps per level")
-    sim.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, E))")
+    sim.add_argument("--steps", type=int,
+                     help="simulation steps per level (default: until converged)")  # fmt: skip
+    sim.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, |E|))")
     sim.add_argument("--k", type=int, default=6, help="nearest neighbours per pore")
     sim.add_argument("--size", type=int, default=1024, help="PNG size in pixels")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
@@ -92,8 +93,9 @@ def register(subparsers) -> None:
                      help="mesh displacement per map unit, as a fraction of the mesh's "
                      "bounding-box diagonal (default 0.001)")  # fmt: skip
     ren.add_argument("--periodic", action="store_true", help="tileable map (torus)")
-    ren.add_argument("--steps", type=int, default=50, help="simulation steps per level")
-    ren.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, E))")
+    ren.add_argument("--steps", type=int,
+                     help="simulation steps per level (default: until converged)")  # fmt: skip
+    ren.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, |E|))")
     ren.set_defaults(run=_render)
 
     ext = sub.add_parser(
@@ -119,24 +121,23 @@ def _levels(args) -> list[WrinkleParams]:
         if not 1 <= args.levels <= 4:
             raise ValueError(f"--levels must be in [1, 4], got {args.levels}")
         base = 0.02 if args.d is None else args.d
-        levels = [WrinkleParams(d=max(base / 2**i, 0.001)) for i in range(args.levels)]
+        # the coarse level directional and deep, finer ones more even and shallower (α_s,
+        # α_scale), with a crossing penalty: strong lines with weak edges between, not a mesh
+        levels = [
+            WrinkleParams(d=max(base / 2**i, 0.001), s=LEVEL_S[i], cross=0.5, scale=LEVEL_SCALE[i])
+            for i in range(args.levels)
+        ]
     changes = {n: getattr(args, n) for n in _OVERRIDES if getattr(args, n) is not None}
     if args.params is None:
         changes.pop("d", None)
     return [p.replace(**changes) for p in levels]
 
 
-def run_levels(key, levels, *, radius_map=None, periodic=False, steps=50, samples=None, k=6):
+def run_levels(key, levels, *, radius_map=None, periodic=False, steps=None, samples=None, k=6):
     """Simulate the levels coarse to fine; returns per level (pores, graph, weights)."""
-    results = []
-    pores = None
-    for i, params in enumerate(tqdm(levels, desc="levels", unit="level", leave=False)):
-        k_pores, k_sim = jax.random.split(jax.random.fold_in(key, i))
-        pores = sample_pores(k_pores, params.d, radius_map, initial=pores, periodic=periodic)
-        graph = build_graph(pores, k=k)
-        weights = simulate(k_sim, graph, params, n_steps=steps, n_samples=samples)
-        results.append((pores, graph, weights))
-    return results
+    sims = simulate_levels(key, levels, radius_map=radius_map, periodic=periodic, n_steps=steps,
+                           n_samples=samples, k=k, progress=True)  # fmt: skip
+    return [(sim.pores, sim.graph, sim.weights) for sim in sims]
 
 
 def draw_graph(results, size: int, periodic: bool) -> np.ndarray:
@@ -151,14 +152,19 @@ def draw_graph(results, size: int, periodic: bool) -> np.ndarray:
         t = np.linspace(0.0, 1.0, steps, dtype=np.float32)
         pts = start[:, None, :] + t[None, :, None] * delta[:, None, :]
         pix = np.floor(pts * size).astype(np.int64)
-        pix = np.mod(pix, size) if periodic else np.clip(pix, 0, size - 1)
-        np.maximum.at(ink, (pix[..., 1].ravel(), pix[..., 0].ravel()), np.repeat(w, steps))
+        ink_w = np.broadcast_to(w[:, None], pix.shape[:2])
+        if periodic:
+            pix = np.mod(pix, size)
+        else:  # the simulation's margin lies outside the map
+            inside = np.all((pix >= 0) & (pix < size), axis=-1)
+            pix, ink_w = pix[inside], ink_w[inside]
+        np.maximum.at(ink, (pix[..., 1].ravel(), pix[..., 0].ravel()), ink_w.ravel())
     return 1.0 - np.clip(ink, 0.0, 1.0)
 
 
 def _simulate(args: argparse.Namespace) -> None:
     out = Path(args.out)
-    if args.steps < 0 or args.size < 16:
+    if (args.steps is not None and args.steps < 0) or args.size < 16:
         raise ValueError("--steps must be ≥ 0 and --size ≥ 16")
     for name in ("wrinkles.npz", "params.json", "wrinkles.png"):
         check_output(out / name)
@@ -197,7 +203,7 @@ def _simulate(args: argparse.Namespace) -> None:
 def _render(args: argparse.Namespace) -> None:
     if not 16 <= args.size <= 16384:
         raise ValueError(f"--size must be in [16, 16384], got {args.size}")
-    if args.steps < 0 or not args.depth > 0:
+    if (args.steps is not None and args.steps < 0) or not args.depth > 0:
         raise ValueError("--steps must be ≥ 0 and --depth > 0")
     out = check_output(args.out, (".exr",))
     check_output(out.with_suffix(".png"), (".png",))
@@ -222,7 +228,7 @@ def _render(args: argparse.Namespace) -> None:
         mesh=args.mesh, periodic=args.periodic, steps=args.steps, samples=args.samples,
     )  # fmt: skip
     run = dict(initial=initial, radius_map=radius_map, periodic=args.periodic,
-               n_steps=args.steps, n_samples=args.samples)  # fmt: skip
+               n_steps=args.steps, n_samples=args.samples, progress=True)  # fmt: skip
     key = jax.random.key(args.seed)
     shape = (args.size, args.size)
     if args.size > BANDED_ABOVE:
@@ -321,8 +327,8 @@ def demo(out_dir: Path, seed: int) -> None:
     from jface.cli import main
 
     main(
-        ["wrinkles", "simulate", "--out", str(Path(out_dir) / "wrinkles"), "--levels", "1",
-         "--d", "0.015", "--theta", "0.6", "--s", "0.2", "--cross", "0.5", "--deposit", "0.4",
+        ["wrinkles", "simulate", "--out", str(Path(out_dir) / "wrinkles"), "--levels", "3",
+         "--d", "0.03", "--theta", "0.6", "--s", "0.2", "--cross", "0.5", "--deposit", "0.4",
          "--periodic", "--size", "768", "--seed", str(seed)]
     )  # fmt: skip
     # and a drawn displacement map (§3.2) of the same parameters

@@ -5,7 +5,7 @@ Pipeline of §3.1, one level::
     params = WrinkleParams(d=0.01, theta=0.5, s=0.2)
     pores = sample_pores(key1, params.d)                  # maximal Poisson-disk pores
     graph = build_graph(pores)                            # symmetric kNN, half-edges, crossings
-    w = simulate(key2, graph, params, n_steps=50)         # trail formation → edge weights W
+    w = simulate(key2, graph, params)                   # trail formation → edge weights W
     disp = draw(key3, graph, w, params, (1024, 1024))     # §3.2: wrinkles + pores → displacement
 
 A finer level starts from the coarser pores: ``sample_pores(key, d2, initial=pores)``.
@@ -52,8 +52,11 @@ from jface.wrinkles._simulation import (
     N_SAMPLES,
     angle_distance,
     continuation_kernel,
+    converged_steps,
     half_edge_scores,
     orientation_density,
+    orientation_weight,
+    samples_per_step,
     simulate,
 )
 from jface.wrinkles._synthesis import (
@@ -61,6 +64,7 @@ from jface.wrinkles._synthesis import (
     Level,
     Simulated,
     Synthesis,
+    simulate_levels,
     synthesize,
     synthesize_bands,
 )
@@ -88,6 +92,7 @@ __all__ = [
     "blend_with_scan",
     "build_graph",
     "continuation_kernel",
+    "converged_steps",
     "default_capacity",
     "draw",
     "draw_bands",
@@ -105,15 +110,18 @@ __all__ = [
     "make_pores",
     "mellowmax",
     "orientation_density",
+    "orientation_weight",
     "params_from_json",
     "params_to_json",
     "perlin_variation",
     "pore_strength",
     "radius_map_from_mesh",
     "sample_pores",
+    "samples_per_step",
     "save_params",
     "shape_function",
     "simulate",
+    "simulate_levels",
     "stack_params",
     "synthesize",
     "synthesize_bands",

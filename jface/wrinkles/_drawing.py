@@ -20,6 +20,7 @@ number of passes keeps the map reverse-differentiable; without gradients (:func:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator
 from typing import NamedTuple
@@ -137,9 +138,38 @@ def pore_strength(
     return jnp.maximum(w_max + dmin, w_max + blend * (w_sum - w_max))
 
 
-@jax.jit
-def primitives(key: jax.Array, graph: PoreGraph, weights, params: WrinkleParams) -> Primitives:
-    """The wrinkle and pore primitives of one level (traced-friendly, no validation)."""
+#: Smallest valley half-width drawn, in pixels: a narrower wrinkle or pore is widened to it with
+#: its depth lowered in proportion (the same depth × width), so that it fades out smoothly instead
+#: of showing as a hairline of full depth (pixel-centre sampling of a sub-pixel line).
+FOOTPRINT = 0.7
+
+
+def perturbation(
+    key: jax.Array, xy, params: WrinkleParams, periodic: bool
+) -> Float[Array, "... 2"]:
+    """The perturbation offset field at points ``xy`` (..., 2): two-channel multi-octave Perlin
+    noise of frequency α_fperturb and amplitude ``α_sperturb · α_wrinkle-width · α_d`` (the
+    valley half-width of a full-strength wrinkle), periodic on periodic maps.
+
+    One field for every wrinkle and pore: the paper queries it at the centre-line point nearest
+    each vertex, so wrinkles that meet at a pore move with it and stay joined."""
+    freq = at(params.fperturb, xy, periodic=periodic)
+    amp = at(params.sperturb, xy, periodic=periodic) * at(params.wrinkle_width, xy,
+                                                           periodic=periodic)  # fmt: skip
+    amp = amp * at(params.d, xy, periodic=periodic)
+    kx, ky = jax.random.split(key)
+    fx = _fractal(kx, xy, freq, _PERTURB_OCTAVES, 0.5, 2.0, periodic)
+    fy = _fractal(ky, xy, freq, _PERTURB_OCTAVES, 0.5, 2.0, periodic)
+    return amp[..., None] * jnp.stack([fx, fy], -1)
+
+
+@functools.partial(jax.jit, static_argnames="shape")
+def primitives(
+    key: jax.Array, graph: PoreGraph, weights, params: WrinkleParams, shape: tuple[int, int]
+) -> Primitives:
+    """The wrinkle and pore primitives of one level drawn at ``shape`` (traced-friendly, no
+    validation). α_scale multiplies every strength before the blend (§3.1.2); widths below
+    :data:`FOOTPRINT` pixels are widened at equal depth × width."""
     per = graph.periodic
     pos = graph.positions
     a = pos[graph.edge_nodes[:, 0]]
@@ -153,29 +183,47 @@ def primitives(key: jax.Array, graph: PoreGraph, weights, params: WrinkleParams)
     theta_v = at(params.theta, pos, periodic=per)
     pore_valid = graph.node_mask
     n = pos.shape[0]
+    scale_v = at(params.scale, pos, periodic=per)
+    scale_e = at(params.scale, mid, periodic=per)
 
     # wrinkles: half-width W · α_wrinkle-width · α_d, strength W, cushion from the end pores
     d_e = at(params.d, mid, periodic=per)
     width_e = weights * at(params.wrinkle_width, mid, periodic=per) * d_e
-    cushion = at(params.cushion, mid, periodic=per)[:, None] * w_v[graph.edge_nodes]
+    cushion = at(params.cushion, mid, periodic=per)[:, None] * (scale_v * w_v)[graph.edge_nodes]
     edge_valid = graph.edge_mask & (weights > 0)
 
-    # perturbation (Fig. 7a, 9): Perlin noise at the centre-line vertices, offset along the normal
+    # perturbation (Fig. 7a, 9): one offset field moves the pores, the wrinkles' end points with
+    # them, and the centre-line vertices in between (the normal component, relative to the
+    # moved straight line, is what the rasteriser interpolates)
+    k_field = key
+    move_v = perturbation(k_field, pos, params, per)
+    ends = move_v[graph.edge_nodes]  # (E, 2, 2)
+    start = a + ends[:, 0]
+    delta = graph.edge_delta + ends[:, 1] - ends[:, 0]
     t = jnp.linspace(0.0, 1.0, N_VERTICES, dtype=jnp.float32)
     verts = a[:, None, :] + t[None, :, None] * graph.edge_delta[:, None, :]
-    freq = at(params.fperturb, mid, periodic=per)[:, None]
-    noise = _fractal(key, verts, freq, _PERTURB_OCTAVES, 0.5, 2.0, False)
-    offsets = (at(params.sperturb, mid, periodic=per) * width_e)[:, None] * noise
+    verts = jnp.mod(verts, 1.0) if per else verts
+    along = ends[:, None, 0] + t[None, :, None] * (ends[:, None, 1] - ends[:, None, 0])
+    rest = perturbation(k_field, verts, params, per) - along  # zero at the end points
+    length = jnp.sqrt(jnp.maximum(jnp.sum(delta * delta, -1), 1e-20))
+    normal = jnp.stack([-delta[:, 1], delta[:, 0]], -1) / length[:, None]  # as _fragments
+    offsets = jnp.sum(rest * normal[:, None, :], -1)
+    offsets = offsets.at[:, 0].set(0.0).at[:, -1].set(0.0)
 
     e = weights.shape[0]
     zeros2 = jnp.zeros((n, 2), jnp.float32)
     axis_v = jnp.stack([jnp.cos(theta_v), jnp.sin(theta_v)], axis=-1)
+    width = jnp.concatenate([width_e, w_v * at(params.pore_width, pos, periodic=per) * d_v])
+    # the pixel footprint: sub-pixel lines fade out rather than alias to hairlines
+    foot = FOOTPRINT / max(shape)
+    wide = jnp.sqrt(width * width + foot * foot)
+    fade = width / wide
     return Primitives(
-        p0=jnp.concatenate([a, pos]),
-        delta=jnp.concatenate([graph.edge_delta, zeros2]),
-        width=jnp.concatenate([width_e, w_v * at(params.pore_width, pos, periodic=per) * d_v]),
-        strength=jnp.concatenate([weights, w_v]),
-        cushion=jnp.concatenate([cushion, zeros2]),
+        p0=jnp.concatenate([start, pos + move_v]),
+        delta=jnp.concatenate([delta, zeros2]),
+        width=wide,
+        strength=fade * jnp.concatenate([scale_e * weights, scale_v * w_v]),
+        cushion=fade[:, None] * jnp.concatenate([cushion, zeros2]),
         offsets=jnp.concatenate([offsets, jnp.zeros((n, N_VERTICES), jnp.float32)]),
         axis=jnp.concatenate([jnp.tile(jnp.array([[1.0, 0.0]], jnp.float32), (e, 1)), axis_v]),
         stretch=jnp.concatenate(
@@ -413,14 +461,14 @@ def _pixel_uv(shape, rows):
 
 
 def _finish(key, blended, params, uv, periodic):
-    """Additive Perlin noise (α_fnoise, α_snoise) and global scaling α_scale of one level."""
+    """Additive Perlin noise (α_fnoise, α_snoise) of one level."""
     freq = at(params.fnoise, uv, periodic=periodic)
     if periodic:
         freq = jnp.maximum(jnp.round(freq), 1.0)
     period = jnp.round(freq).astype(jnp.int32) if periodic else jnp.int32(0)
     noise = _noise(key, uv, freq, period)
-    snoise = at(params.snoise, uv, periodic=periodic)
-    return at(params.scale, uv, periodic=periodic) * (blended + snoise * noise)
+    # α_scale is already in the primitives' strengths (applied before the blend, §3.1.2)
+    return blended + at(params.snoise, uv, periodic=periodic) * noise
 
 
 def _noise(key, uv, freq, period):
@@ -542,7 +590,7 @@ def draw(
     opts = DrawOptions(bulge, tile, capacity, span, passes, beta, n_hat)
     key, w, shape, opts = _check_draw(key, graph, weights, params, shape, opts)
     k_perturb, k_noise = jax.random.split(key)
-    prims = primitives(k_perturb, graph, w, params)
+    prims = primitives(k_perturb, graph, w, params, shape)
     opts = _static_sizes(prims, shape, opts, graph.periodic)
     return _draw(k_noise, prims, params, shape, opts, graph.periodic)
 
@@ -675,7 +723,7 @@ def draw_bands(
 
 def _bands(key, graph, weights, params, shape, opts, band):
     k_perturb, k_noise = jax.random.split(key)
-    prims = primitives(k_perturb, graph, weights, params)
+    prims = primitives(k_perturb, graph, weights, params, shape)
     opts = _static_sizes(prims, shape, opts, graph.periodic)
     bins = _bin(prims, shape, opts, graph.periodic)
     n = -(-min(band, shape[0]) // opts.tile)  # tile rows per band

@@ -138,8 +138,9 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
         for d in d_values
     ]
     graphs = tuple(stack_graphs([g[level] for g in built]) for level in range(2))
-    # the simulation's N: its default for the densest graph of the range (the fit's objective
-    # does not depend on how tightly the graphs are stored)
+    # the simulation's N: a fixed setting of the fit, about twice the densest graph's edges, so
+    # that the fit's 50 steps carve the patch (N = |E| would need ~5x the steps; the paper's
+    # 50,000 on a patch of a few thousand edges decays by a quarter per step)
     n_samples = tuple(min(N_SAMPLES, specs[level].k * caps[level]) for level in range(2))
     entries = _draw_entries(k1, d_values, graphs, shape, n_samples, n_steps)
     # the bins enumerate pairs, so a primitive may touch every tile at no extra cost
@@ -160,7 +161,7 @@ def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int
             g = jax.tree.map(lambda a, i=i: a[i], graphs[level])
             params = WrinkleParams(d=float(d_values[i]) / (1 + level), **_WIDE)
             w = simulate(key, g, params, n_steps=n_steps, n_samples=n_samples[level])
-            prims = primitives(key, g, w, params)
+            prims = primitives(key, g, w, params, shape)
             need = needed_entries(prims, shape, tile=_TILE, bulge=bulge, periodic=True)
             pairs = max(pairs, need)
         entries.append(2 * pairs)
@@ -223,7 +224,7 @@ def _binned(key, sims, levels, layout: _Layout):
     ):
         opts = _options(i, layout)
         k_perturb, k_noise = jax.random.split(k)
-        prims = primitives(k_perturb, graph, w, params)
+        prims = primitives(k_perturb, graph, w, params, layout.shape)
         bins = bin_primitives(
             prims, layout.shape, tile=_TILE, span=opts.span, bulge=opts.bulge, periodic=True,
             entries=opts.entries,

@@ -24,16 +24,20 @@ from jaxtyping import Array, Float
 from jface import _checks
 
 #: Ranges of every user parameter of Table 1 (simulation rows, then drawing rows), keyed by the
-#: paper's suffix. ``deposit`` uses the range stated in §3.1.2 ([0.01, 1.0]; Table 1's
-#: [0.3, 0.9] excludes the paper's own default 0.25). ``decay`` (fixed to 0.5 in the paper, not in
-#: Table 1), ``sigma`` (σ of Eq. 1), ``sigma_cont`` (σ_cspread of Eq. 4) and ``dt`` (Δt of
-#: Eq. 7–8) are the method's constants, exposed with the ranges given here.
+#: paper's suffix. ``cont`` spans [0, 1], not Table 1's [0, 0.01]: Eq. 3 blends ``(1 − α_cont)``
+#: of the orientation term against the continuation term, which needs α_cont on [0, 1], and at
+#: 0.01 the continuation moves the weights by 0.002 on average although Fig. 6 shows a clear
+#: effect (docs/wrinkles/convergence.png). ``deposit`` uses the range stated in §3.1.2
+#: ([0.01, 1.0]; Table 1's [0.3, 0.9] excludes the paper's own default 0.25). ``decay`` (fixed
+#: to 0.5 in the paper, not in Table 1), ``sigma`` (σ of Eq. 1), ``sigma_cont`` (σ_cspread of
+#: Eq. 4) and ``dt`` (Δt of Eq. 7–8) are the method's constants, exposed with the ranges given
+#: here.
 PARAMETER_RANGES: dict[str, tuple[float, float]] = {
     "d": (0.001, 0.05),
     "theta": (0.0, 2.0 * math.pi),
     "s": (0.0, 1.0),
     "dist": (0.0, 5.0),
-    "cont": (0.0, 0.01),
+    "cont": (0.0, 1.0),
     "sim": (0.0, 2.0),
     "cross": (0.0, 1.0),
     "deposit": (0.01, 1.0),
@@ -85,7 +89,8 @@ class WrinkleParams(eqx.Module):
     the pore for node terms, at the edge midpoint for ``deposit`` and ``decay``). Defaults are the
     paper's: the four reward/penalty terms 0, ``deposit`` 0.25, ``decay`` 0.5, σ = σ_cspread = 0.3,
     Δt = 0.03. Table 1 gives no defaults for the drawing rows; ours draw moderately wide wrinkles
-    with visible pores, mild perturbation and little additive noise.
+    with pores as visible pits (found by :func:`find_pores` on a map with ≥ 20 px between pores),
+    mild perturbation and little additive noise.
 
     Attributes:
         d: α_d, average pore distance (minimum distance of the Poisson-disk sampling) in UV units.
@@ -127,8 +132,8 @@ class WrinkleParams(eqx.Module):
     sigma_cont: Float[Array, "*shape"] = _field(0.3)
     dt: Float[Array, "*shape"] = _field(0.03)
     wrinkle_width: Float[Array, "*shape"] = _field(0.3)
-    pore_width: Float[Array, "*shape"] = _field(0.15)
-    dmin: Float[Array, "*shape"] = _field(0.2)
+    pore_width: Float[Array, "*shape"] = _field(0.3)
+    dmin: Float[Array, "*shape"] = _field(0.4)
     blend: Float[Array, "*shape"] = _field(0.5)
     skew: Float[Array, "*shape"] = _field(0.0)
     cushion: Float[Array, "*shape"] = _field(0.0)
