@@ -4,7 +4,6 @@ landmarks are known, under any pose and unit; non-faces and malformed meshes ref
 import json
 import sys
 
-import jax
 import numpy as np
 import pytest
 import trimesh
@@ -102,14 +101,6 @@ def test_mediapipe_face_markers_at_its_known_ids():
     assert err.mean() < 5.0 and err.max() < 10.0, err
 
 
-def test_same_key_same_markers_other_key_close(lee_perry_smith, found):
-    scan, _, _ = lee_perry_smith
-    again = mesh.find_landmarks(scan.vertices, scan.faces, key=jax.random.key(0))
-    np.testing.assert_array_equal(np.asarray(again.points), np.asarray(found.points))
-    other = mesh.find_landmarks(scan.vertices, scan.faces, key=jax.random.key(5))
-    assert errors(other.points, np.asarray(found.points, np.float64)).max() < 5.0
-
-
 @pytest.mark.parametrize("shape", ["sphere", "box", "blob"])
 def test_not_a_face_is_refused_with_the_residual(shape):
     if shape == "sphere":
@@ -151,5 +142,6 @@ def test_cli_writes_landmarks_and_picture(tmp_path, lee_perry_smith, found, monk
     written = json.loads(out.read_text())
     assert list(written) == list(NAMES)
     points = np.asarray([written[n] for n in NAMES])
+    # Same default key, same markers: the command is deterministic.
     np.testing.assert_allclose(points, np.asarray(found.points), atol=1e-6)
     assert picture.stat().st_size > 10_000

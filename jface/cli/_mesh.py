@@ -228,8 +228,16 @@ def landmark_picture(vertices, faces, found, size: int = 640) -> np.ndarray:
     fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
     ax.imshow(np.asarray(image), cmap="gray", vmin=0, vmax=1)
     ax.scatter(screen[:, 0], screen[:, 1], s=18, c="red", edgecolors="white", linewidths=0.5)
-    for (x, y), name in zip(screen, found.names, strict=True):
-        ax.annotate(name, (x, y), (4, -4), textcoords="offset points", fontsize=7, color="yellow")
+    for (x, y), name in zip(screen[:, :2], found.names, strict=True):
+        ax.annotate(
+            name,
+            (x, y),
+            (4, -4),
+            textcoords="offset points",
+            fontsize=7,
+            color="yellow",
+            bbox={"boxstyle": "round,pad=0.1", "fc": "black", "alpha": 0.55, "lw": 0},
+        )
     ax.set_title(
         f"landmarks found by fitting the face model (score {float(found.score):.3f})", fontsize=10
     )
