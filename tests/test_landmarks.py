@@ -145,3 +145,15 @@ def test_cli_writes_landmarks_and_picture(tmp_path, lee_perry_smith, found, monk
     # Same default key, same markers: the command is deterministic.
     np.testing.assert_allclose(points, np.asarray(found.points), atol=1e-6)
     assert picture.stat().st_size > 10_000
+
+
+def test_remesh_without_landmarks_finds_them(tmp_path, found, capsys, monkeypatch):
+    scan_path = str(data.path("lee_perry_smith_head.obj"))
+    monkeypatch.setattr(sys, "argv", ["jface"])
+    out = tmp_path / "face"
+    main(["remesh", scan_path, "--out-dir", str(out), "--image-size", "64"])
+    assert "no --landmarks: found the 21 landmarks" in capsys.readouterr().out
+    written = json.loads((out / "landmarks.json").read_text())
+    points = np.asarray([written[n] for n in NAMES])
+    np.testing.assert_allclose(points, np.asarray(found.points), atol=1e-6)
+    assert (out / "displacement.exr").is_file()

@@ -47,7 +47,7 @@ _SHAPE_TRIM = (0.15, 0.12, 0.1, 0.08, 0.07, 0.06, 0.05, 0.05, 0.05, 0.05)
 #: bust with shoulders).
 _SCALES = (0.8, 0.45)
 #: Scan points per rotation where the nose tip may be.
-_NOSE_CANDIDATES = 2
+_NOSE_CANDIDATES = 3
 _SCORE_TRIM = 0.05
 _NORMAL_SMOOTHING = 3
 #: Samples and model vertices of the rigid fits, samples near the face of the refinement.
@@ -332,7 +332,7 @@ def _symmetry_axis(points: Array, axes: Array) -> Array:
     return jnp.argmin(jax.vmap(asymmetry, in_axes=1)(axes))
 
 
-def _hypotheses(frame: _Frame, points: Array) -> Pose:
+def _hypotheses(frame: _Frame, points: Array, normals: Array) -> Pose:
     """Initial poses from the geometry: the model's right-left axis along the scan's symmetry
     axis (both signs), up and front along the other two principal axes (any sign), the nose tip
     on one of the scan points protruding most along that front, at a few scales."""
@@ -348,7 +348,8 @@ def _hypotheses(frame: _Frame, points: Array) -> Pose:
     rotations = jnp.stack(rotations)  # (8, 3, 3): model axes (right, up, front) → scan
 
     # The nose tip protrudes most above its surroundings: height along the front minus the
-    # mean height within a third of the face's radius, per scale hypothesis.
+    # mean height within a third of the face's radius, per scale hypothesis; and it faces the
+    # front (unlike the rims of shoulders and ears).
     d2 = jnp.sum((points[:, None] - points[None]) ** 2, axis=-1)
     scales = jnp.asarray(_SCALES, points.dtype)
 
@@ -356,18 +357,18 @@ def _hypotheses(frame: _Frame, points: Array) -> Pose:
         height = points @ rotation[:, 2]
         around = (d2 < (scale / 3.0) ** 2).astype(points.dtype)
         bump = height - (around @ height) / jnp.sum(around, axis=1)
+        bump = jnp.where(jnp.abs(normals @ rotation[:, 2]) > 0.7, bump, -jnp.inf)
         picked = []
         for _ in range(_NOSE_CANDIDATES):
             apart = jnp.ones(len(points), bool)
             for p in picked:
-                apart &= jnp.sum((points - p) ** 2, axis=1) > scale**2
+                apart &= jnp.sum((points - p) ** 2, axis=1) > (0.5 * scale) ** 2
             picked.append(points[jnp.argmax(jnp.where(apart, bump, -jnp.inf))])
         return jnp.stack(picked)
 
     n_rot, n_nose, n_scale = len(rotations), _NOSE_CANDIDATES, len(_SCALES)
     per_scale = jax.vmap(noses, in_axes=(None, 0), out_axes=1)
-    nose_points = jax.vmap(per_scale, in_axes=(0, None))(rotations, scales)  # (r, s, c, 3)
-    nose_points = jnp.swapaxes(nose_points, 1, 2)  # (r, c, s, 3)
+    nose_points = jax.vmap(per_scale, in_axes=(0, None))(rotations, scales)  # (r, c, s, 3)
     rot = jnp.broadcast_to(rotations[:, None, None], (n_rot, n_nose, n_scale, 3, 3))
     s = jnp.broadcast_to(scales[None, None, :], rot.shape[:3])
     nose_model = jnp.einsum("hij,j->hi", rotations, frame.nose)
@@ -416,7 +417,7 @@ def fit_samples(
     coarse = Samples(
         samples.points[:_COARSE_SCAN], samples.normals[:_COARSE_SCAN], samples.center, samples.scale
     )
-    poses = _hypotheses(frame, coarse.points)
+    poses = _hypotheses(frame, coarse.points, coarse.normals)
 
     def rigid(pose):
         return _icp(coarse_frame, coarse, pose, zeros_k, zeros_e, _RIGID_TRIM, shape=False)
