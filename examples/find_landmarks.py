@@ -66,7 +66,7 @@ def main() -> None:
     right.set_xticks(x, NAMES, rotation=70, ha="right", fontsize=8)
     right.set_ylabel("distance to the hand-placed marker (% of inter-ocular distance)")
     right.set_title("error per marker")
-    right.legend()
+    right.legend(loc="upper left")
     right.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.canvas.draw()
