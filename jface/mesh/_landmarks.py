@@ -1,27 +1,30 @@
 """The 21 template landmarks of a scan with no clicks: the ICT-FaceKit face model shipped with
 jface, fitted to the scan by robust least squares, its landmark vertices projected onto the scan.
 
-1. **Samples.** ``n_points`` points drawn uniformly over the scan's area (seeded), with the
-   normals of their triangles, centred and scaled to unit RMS radius: every later step is free
-   of the scan's unit and position, and scans resampled to the same size batch with ``vmap``.
-2. **Pose hypotheses from the geometry.** The scan's principal axes give 24 rotations (the
-   model's up and front along any signed pair of them); for each, the model's nose tip goes to
-   one of the scan points protruding most along that front (the nose, but maybe the chest or an
-   ear: several, kept apart), at a few scales (a face-only scan or a bust).
+1. **Samples.** ``n_points`` points drawn uniformly over the scan's area (seeded), with normals
+   smoothed over a few rings (scanner noise), centred and scaled to unit RMS radius: every later
+   step is free of the scan's unit and position, and scans resampled to the same size batch
+   with ``vmap``.
+2. **Pose hypotheses from the geometry.** The principal axis across which the scan is most
+   mirror-symmetric is the left-right axis; the model's up and front go along the other two,
+   with any sign (8 rotations). For each, the model's nose tip goes to one of the scan points
+   that protrude most above their surroundings along that front and face it (the nose, but
+   maybe the chin or a shoulder: several, kept apart), at two scales (a face-only scan, a bust).
 3. **Fit.** Iterated closest points, each round a Gauss–Newton solve (optimistix) of the
    point-to-plane distances (plus a tenth of the point-to-point ones, against sliding) of the
    model's face vertices to their nearest scan samples, over the similarity transform and, in
    the refinement, the identity and expression coefficients under their Gaussian prior. Pairs
    farther than a trimming distance, or whose normals disagree, are dropped, and the others
    weighted by a Cauchy loss, so hair, ears, neck, shoulders and holes do not pull the fit; the
-   trimming distance shrinks from round to round. Every hypothesis is fitted rigidly; the best
-   few by a truncated score are refined with the shape coefficients, and the best of those wins.
+   trimming distance shrinks from round to round. Every hypothesis is fitted as a similarity;
+   the best few by score are refined with the shape coefficients, and the best of those wins.
 4. **Markers.** The fitted model's landmark vertices (``ICT_IDS``) go back to the scan's frame
    and onto its surface (exact closest points).
 
 The score is the mean over the model's face vertices of ``min(d² / τ², 1)``, with ``d`` the
-distance to the nearest scan sample and ``τ`` a twentieth of the fitted face's size: 0 for a
-perfect face, 1 where nothing fits. Above ``max_score`` no face was found.
+point-to-plane distance to the nearest scan sample (a pair beyond the last trimming distance
+counts 1) and ``τ`` a twentieth of the fitted face's RMS radius: 0 for a perfect face, 1 where
+nothing fits. Above ``max_score`` no face was found.
 """
 
 from __future__ import annotations
@@ -46,8 +49,9 @@ _SHAPE_TRIM = (0.15, 0.12, 0.1, 0.08, 0.07, 0.06, 0.05, 0.05, 0.05, 0.05)
 #: Scales of the face hypotheses relative to the scan's RMS radius (a face-only scan, a head, a
 #: bust with shoulders).
 _SCALES = (0.8, 0.45)
-#: Scan points per rotation where the nose tip may be.
+#: Scan points per rotation and scale where the nose tip may be.
 _NOSE_CANDIDATES = 3
+#: The score's distance scale (face radii) and the rings over which normals are smoothed.
 _SCORE_TRIM = 0.05
 _NORMAL_SMOOTHING = 3
 #: Samples and model vertices of the rigid fits, samples near the face of the refinement.
@@ -108,7 +112,7 @@ class Samples(eqx.Module):
 
     Attributes:
         points: ``(n, 3)`` normalised positions.
-        normals: ``(n, 3)`` unit normals of their triangles.
+        normals: ``(n, 3)`` unit normals (vertex normals smoothed over a few rings, interpolated).
         center: ``(3,)`` and scale: ``()`` the normalisation, ``x = points · scale + center``.
     """
 
@@ -449,8 +453,8 @@ class Landmarks(eqx.Module):
             similarity, ``x ↦ scale · rotation @ x + translation``.
         identity: ``(k,)`` and expression: ``(e,)`` the fitted coefficients.
         score: the truncated residual (0 perfect, 1 nothing fits); inliers: fraction of the face
-            vertices within a twentieth of the face's size of the scan; rms: their RMS distance
-            in scan units.
+            vertices within a twentieth of the face's RMS radius of the scan; rms: their RMS
+            distance in scan units.
         names: the landmark names (static).
     """
 
