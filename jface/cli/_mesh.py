@@ -1,4 +1,5 @@
-"""``jface remesh``, ``jface displace`` and the remeshing step of the demo."""
+"""``jface landmarks``, ``jface remesh``, ``jface displace`` and the remeshing step of the
+demo."""
 
 from __future__ import annotations
 
@@ -13,15 +14,25 @@ from jface import io, mesh, raster, render
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    lm = sub.add_parser(
+        "landmarks",
+        help="scan → its 21 template landmarks, found by fitting the built-in ICT-FaceKit model",
+    )
+    lm.add_argument("scan", help="scan mesh (OBJ, PLY, ...), any orientation, position and unit")
+    lm.add_argument("--out", required=True, help="output JSON: name → x,y,z")
+    lm.add_argument("--picture", help="PNG: the shaded scan with the markers and their names")
+    lm.add_argument("--seed", type=int, default=0, help="seeds the surface samples")
+    lm.set_defaults(run=_landmarks)
+
     rem = sub.add_parser(
         "remesh", help="scan + 21 landmarks → base mesh + displacement image (Golovinskiy §2.2)"
     )
     rem.add_argument("scan", help="scan mesh (OBJ, PLY, ...)")
     rem.add_argument(
         "--landmarks",
-        required=True,
         help="JSON/CSV: the 21 template names → x,y,z or vertex id (ids count the vertices as "
-        "read with coincident ones merged, as jface.io.read_mesh does)",
+        "read with coincident ones merged, as jface.io.read_mesh does); without it they are "
+        "found by fitting the built-in face model (as jface landmarks does)",
     )
     rem.add_argument("--out-dir", required=True, help="output folder")
     rem.add_argument("--image-size", type=int, default=1024, help="displacement image size")
@@ -115,9 +126,19 @@ def write_face(out: Path, face, meta: dict, fmt: str, protect=()) -> None:
 def _remesh(args: argparse.Namespace) -> None:
     check_face_outputs(Path(args.out_dir), args.format)
     scan = io.read_mesh(args.scan)
-    marks = io.read_landmarks(
-        args.landmarks, n_vertices=len(scan.vertices), names=mesh.LANDMARK_NAMES
-    )
+    if args.landmarks is None:
+        start = time.perf_counter()
+        found = mesh.find_landmarks(scan.vertices, scan.faces)
+        marks = found.as_dict()
+        print(
+            f"no --landmarks: found the 21 landmarks by fitting the face model in "
+            f"{time.perf_counter() - start:.1f} s (fit score {float(found.score):.3f}); "
+            "written to landmarks.json"
+        )
+    else:
+        marks = io.read_landmarks(
+            args.landmarks, n_vertices=len(scan.vertices), names=mesh.LANDMARK_NAMES
+        )
     start = time.perf_counter()
     result = mesh.remesh(
         scan.vertices,
@@ -136,7 +157,7 @@ def _remesh(args: argparse.Namespace) -> None:
     filled = np.asarray(result.filled)
     meta = io.provenance(
         source=Path(args.scan).name,
-        landmarks=Path(args.landmarks).name,
+        landmarks=Path(args.landmarks).name if args.landmarks else "found (jface landmarks)",
         schedule=[args.linear, args.loop, args.smooth],
         fit=args.fit,
         hit_rates=rates,
@@ -144,7 +165,10 @@ def _remesh(args: argparse.Namespace) -> None:
         image_convention="row 0 = v 1 (forehead); u left to right = subject's right to left",
     )
     out = Path(args.out_dir)
-    write_face(out, result, meta, args.format, protect=(args.scan, args.landmarks))
+    inputs = (args.scan, args.landmarks) if args.landmarks else (args.scan,)
+    write_face(out, result, meta, args.format, protect=inputs)
+    if args.landmarks is None:
+        io.write_landmarks(out / "landmarks.json", marks, protect=inputs)
     # Where rays missed the scan the image is a membrane fill: shown in red over the relief.
     shaded = np.asarray(render.shade(result.image))[..., None]
     red = np.asarray([1.0, 0.15, 0.1])
@@ -158,6 +182,71 @@ def _remesh(args: argparse.Namespace) -> None:
         f"scan, {np.mean(filled > 0.5):.2%} of the image filled (red in filled.png); written "
         f"to {out}/"
     )
+
+
+def _landmarks(args: argparse.Namespace) -> None:
+    io.check_output(args.out, (".json",))
+    if args.picture:
+        io.check_output(args.picture, (".png",))
+    scan = io.read_mesh(args.scan)
+    start = time.perf_counter()
+    found = mesh.find_landmarks(scan.vertices, scan.faces, key=jax.random.key(args.seed))
+    seconds = time.perf_counter() - start
+    io.write_landmarks(args.out, found.as_dict(), protect=(args.scan,))
+    if args.picture:
+        meta = io.provenance(
+            seed=args.seed, source=Path(args.scan).name, score=round(float(found.score), 4)
+        )
+        picture = landmark_picture(scan.vertices, scan.faces, found)
+        io.write_png(args.picture, picture, metadata=meta, protect=(args.scan,))
+    print(
+        f"found the 21 landmarks of {Path(args.scan).name} in {seconds:.1f} s: fit score "
+        f"{float(found.score):.3f} (0 perfect, 1 nothing fits), {float(found.inliers):.0%} of "
+        f"the face model on the scan, RMS {float(found.rms):.3g} scan units; written to "
+        f"{args.out}" + (f" and {args.picture}" if args.picture else "")
+    )
+
+
+def landmark_picture(vertices, faces, found, size: int = 640) -> np.ndarray:
+    """The scan shaded from the fitted face's front, the markers drawn with their names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rotation = np.asarray(found.rotation, dtype=np.float64)
+    # The model's axes (right, up, front) → the camera's (x, y, z): a frontal view.
+    posed = np.asarray(vertices, dtype=np.float64) @ rotation
+    points = np.asarray(found.points, dtype=np.float64) @ rotation
+    center = points.mean(axis=0)
+    extent = 2.6 * float(np.linalg.norm(points - center, axis=1).max())
+    image = raster.render(posed, np.asarray(faces), size, center=center, extent=extent)
+    _, screen = raster.project(
+        np.vstack([posed, points]), (size, size), center=center, extent=extent
+    )
+    screen = screen[-len(points) :]
+    fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
+    ax.imshow(np.asarray(image), cmap="gray", vmin=0, vmax=1)
+    ax.scatter(screen[:, 0], screen[:, 1], s=18, c="red", edgecolors="white", linewidths=0.5)
+    for (x, y), name in zip(screen[:, :2], found.names, strict=True):
+        ax.annotate(
+            name,
+            (x, y),
+            (4, -4),
+            textcoords="offset points",
+            fontsize=7,
+            color="yellow",
+            bbox={"boxstyle": "round,pad=0.1", "fc": "black", "alpha": 0.55, "lw": 0},
+        )
+    ax.set_title(
+        f"landmarks found by fitting the face model (score {float(found.score):.3f})", fontsize=10
+    )
+    ax.set_axis_off()
+    fig.tight_layout()
+    fig.canvas.draw()
+    picture = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float32) / 255.0
+    plt.close(fig)
+    return picture
 
 
 def _displace(args: argparse.Namespace) -> None:
