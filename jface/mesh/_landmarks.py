@@ -40,6 +40,7 @@ from jaxtyping import Array, Float, Int
 
 from jface import _checks
 from jface.mesh._raycast import ScanIndex, closest_points
+from jface.mesh._remesh import _scan_arrays
 from jface.mesh._template import ICT_IDS, LANDMARK_NAMES
 
 #: Trimming distances of the rigid rounds and of the refinement, in units of the face's RMS
@@ -519,18 +520,7 @@ def find_landmarks(
         ValueError: malformed, empty, tiny or non-finite meshes.
         NoFaceError: (a ValueError) the best fit's score is above ``max_score``.
     """
-    verts = np.asarray(_checks.float_array(vertices, "vertices", ndim=2), np.float64)
-    if verts.shape[1] != 3:
-        raise ValueError(f"vertices must have shape (V, 3), got {verts.shape}")
-    if faces is None or np.size(faces) == 0:
-        raise ValueError("faces is empty: a triangle mesh is needed, not a point cloud")
-    tri = np.asarray(faces)
-    if tri.dtype.kind not in "iu":
-        raise TypeError(f"faces must be integers, got dtype {tri.dtype}")
-    if tri.ndim != 2 or tri.shape[1] != 3:
-        raise ValueError(f"faces must have shape (F, 3), got {tri.shape}")
-    if tri.min() < 0 or tri.max() >= len(verts):
-        raise ValueError(f"faces index vertices outside [0, {len(verts)})")
+    verts, tri = _scan_arrays(vertices, faces, manifold=False)
     if len(tri) < 100:
         raise ValueError(f"the mesh has {len(tri)} triangles: too few for a face (100 at least)")
     cross = np.cross(verts[tri[:, 1]] - verts[tri[:, 0]], verts[tri[:, 2]] - verts[tri[:, 0]])

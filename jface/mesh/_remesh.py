@@ -91,7 +91,11 @@ class Remeshed(eqx.Module):
         return template_hierarchy(None, *self.schedule)
 
 
-def _scan_arrays(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
+def _scan_arrays(
+    vertices: Any, faces: Any, *, manifold: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """A scan's vertices (float64) and faces (int64), checked; ``manifold`` also refuses edges
+    shared by more than two triangles."""
     verts = np.asarray(_checks.float_array(vertices, "scan vertices", ndim=2), dtype=np.float64)
     if verts.shape[1] != 3:
         raise ValueError(f"scan vertices must have shape (V, 3), got {verts.shape}")
@@ -104,7 +108,8 @@ def _scan_arrays(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"scan faces must have shape (F, 3), got {tri.shape}")
     if tri.min() < 0 or tri.max() >= len(verts):
         raise ValueError(f"scan faces index vertices outside [0, {len(verts)})")
-    check_manifold(tri, len(verts), "the scan")
+    if manifold:
+        check_manifold(tri, len(verts), "the scan")
     return verts, tri.astype(np.int64)
 
 
