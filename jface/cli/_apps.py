@@ -67,9 +67,24 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _synthesis_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grid", type=int, default=16, help="tiles per side for the statistics")
     parser.add_argument("--scales", type=int, default=4, help="pyramid scales")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--n-iter", type=int, default=detail._synthesis.N_ITER)
-    parser.add_argument("--noise", type=float, default=detail._synthesis.NOISE)
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed of the synthesis noise (default %(default)s)",
+    )
+    parser.add_argument(
+        "--n-iter",
+        type=int,
+        default=detail._synthesis.N_ITER,
+        help="synthesis iterations (Anderson-accelerated, then a polish) (default %(default)s)",
+    )
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=detail._synthesis.NOISE,
+        help="start noise, relative to the target detail amplitude (default %(default)s)",
+    )
     parser.add_argument("--format", choices=("obj", "ply"), default="obj", help="mesh format")
 
 

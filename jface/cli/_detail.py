@@ -21,11 +21,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     analyze.add_argument("files", nargs="+", help="maps: EXR (one channel), PNG/JPEG or .npy")
     analyze.add_argument("--out", required=True, help="output folder (one .npz + .png per map)")
-    analyze.add_argument("--grid", type=int, default=16)
-    analyze.add_argument("--scales", type=int, default=4)
-    analyze.add_argument("--orientations", type=int, default=4)
+    analyze.add_argument(
+        "--grid",
+        type=int,
+        default=16,
+        help="tiles per side of the statistics grid (default %(default)s)",
+    )
+    analyze.add_argument(
+        "--scales", type=int, default=4, help="pyramid scales (default %(default)s)"
+    )
+    analyze.add_argument(
+        "--orientations", type=int, default=4, help="orientations per scale (default %(default)s)"
+    )
     analyze.add_argument("--bins", type=int, default=None, help="also store histograms (full)")
-    analyze.add_argument("--boundary", choices=("circular", "reflect"), default="circular")
+    analyze.add_argument(
+        "--boundary",
+        choices=("circular", "reflect"),
+        default="circular",
+        help="pyramid boundary: periodic (the paper's) or mirrored (default %(default)s)",
+    )
     analyze.add_argument(
         "--overwrite", action="store_true", help="redo maps whose statistics already exist"
     )
@@ -35,11 +49,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     synth.add_argument("start", help="map to start from")
     synth.add_argument("--stats", required=True, help="target statistics (.npz from analyze)")
     synth.add_argument("--out", required=True, help="output EXR (a shaded PNG is written beside)")
-    synth.add_argument("--seed", type=int, default=0)
-    synth.add_argument("--n-iter", type=int, default=detail._synthesis.N_ITER)
-    synth.add_argument("--noise", type=float, default=detail._synthesis.NOISE)
-    synth.add_argument("--rule", choices=("exact", "paper"), default="exact")
-    synth.add_argument("--method", choices=("std", "histogram"), default=None)
+    synth.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed of the synthesis noise (default %(default)s)",
+    )
+    synth.add_argument(
+        "--n-iter",
+        type=int,
+        default=detail._synthesis.N_ITER,
+        help="synthesis iterations (Anderson-accelerated, then a polish) (default %(default)s)",
+    )
+    synth.add_argument(
+        "--noise",
+        type=float,
+        default=detail._synthesis.NOISE,
+        help="start noise, relative to the target detail amplitude (default %(default)s)",
+    )
+    synth.add_argument(
+        "--rule",
+        choices=("exact", "paper"),
+        default="exact",
+        help="per-tile gain: the tile's own, or the paper's grown tiles (default %(default)s)",
+    )
+    synth.add_argument(
+        "--method",
+        choices=("std", "histogram"),
+        default=None,
+        help="match deviations or histograms (default: histogram when the statistics have them)",
+    )
     synth.add_argument(
         "--boundary",
         choices=("circular", "reflect"),
@@ -56,10 +95,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     build.add_argument(
         "--metadata", help="JSON list (or JSON-lines file) of records, one per map, with 'id'"
     )
-    build.add_argument("--grid", type=int, default=16)
-    build.add_argument("--scales", type=int, default=4)
-    build.add_argument("--bins", type=int, default=None)
-    build.add_argument("--chunk", type=int, default=8)
+    build.add_argument(
+        "--grid",
+        type=int,
+        default=16,
+        help="tiles per side of the statistics grid (default %(default)s)",
+    )
+    build.add_argument("--scales", type=int, default=4, help="pyramid scales (default %(default)s)")
+    build.add_argument(
+        "--bins", type=int, default=None, help="also store per-tile histograms with this many bins"
+    )
+    build.add_argument(
+        "--chunk",
+        type=int,
+        default=8,
+        help="maps analysed at once (bounds memory) (default %(default)s)",
+    )
     build.set_defaults(run=_db_build)
     compare = db_sub.add_parser(
         "compare", help="compare groups tile by tile (Golovinskiy et al. Fig. 6)"

@@ -37,7 +37,12 @@ def _library_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lam", type=float, default=_quilting.LAM, help="target weight λ")
     p.add_argument("--n-best", type=int, default=None, help="choose among the N best patches")
     p.add_argument("--no-symmetry", action="store_true", help="no left/right source constraint")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed (default %(default)s)",
+    )
     p.add_argument("--out", required=True, help="output folder")
 
 
