@@ -324,7 +324,7 @@ def join_processes(
             f"the cluster); got coordinator={coordinator!r}, process_id={process_id!r}, "
             f"num_processes={num_processes!r}"
         )
-    timeout = _checks.real(timeout, "timeout", low=1)
+    timeout = _checks.real(timeout, "timeout", low=1.0)
     if coordinator is None:
         jax.distributed.initialize(initialization_timeout=int(timeout))
         return
