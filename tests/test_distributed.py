@@ -83,10 +83,8 @@ def test_builds_are_byte_identical(maps, one_process, tmp_path):
 
 def test_two_processes_equal_one(maps, one_process, tmp_path):
     out = tmp_path / "db.npz"
-    start = time.monotonic()
     done = jface("db", "build", *maps, "--out", str(out), *LAYOUT, "--processes", "2")
     assert done.returncode == 0, done.stderr
-    assert time.monotonic() - start < 30
     assert done.stdout.strip() == f"16 faces in {out}"  # process 0 alone reports
     assert out.read_bytes() == one_process.read_bytes()
     ours, reference = detail.Population.load(out), detail.Population.load(one_process)
@@ -149,7 +147,7 @@ def test_unreachable_coordinator_fails_fast(maps, tmp_path, capsys, monkeypatch)
     argv += ["--coordinator", f"127.0.0.1:{free_port()}", "--process-id", "1"]
     start = time.monotonic()
     assert main([*argv, "--num-processes", "2", "--timeout", "2"]) == 2
-    assert time.monotonic() - start < 10
+    assert time.monotonic() - start < 20  # the 2 s timeout, not the 300 s of JAX's default
     assert "cannot reach the coordinator 127.0.0.1" in capsys.readouterr().err
 
 
@@ -193,3 +191,22 @@ def test_database_of_another_layout_or_version_is_kept(maps, one_process, tmp_pa
     with pytest.raises(ValueError, match=r"jface_version '0\.1\.0' \(now '9\.9'\)"):
         detail.build_database(maps, out, grid=4, n_scales=2, progress=False)
     assert out.read_bytes() == one_process.read_bytes()
+
+
+def test_a_failing_process_stops_the_others(maps, tmp_path):
+    port = free_port()
+    entry = "import sys; from jface.cli import main; sys.exit(main())"
+    workers = []
+    for i, last in ((0, maps[2]), (1, str(tmp_path / "missing.exr"))):
+        argv = ["db", "build", *maps[:2], last, "--out", str(tmp_path / "db.npz"), *LAYOUT]
+        argv += ["--coordinator", f"127.0.0.1:{port}", "--process-id", str(i)]
+        argv += ["--num-processes", "2", "--timeout", "10"]
+        workers.append(
+            subprocess.Popen(
+                [sys.executable, "-c", entry, *argv], stderr=subprocess.PIPE, text=True
+            )
+        )
+    errors = [worker.communicate(timeout=30)[1] for worker in workers]
+    assert [worker.returncode for worker in workers] == [2, 2]
+    assert "process 1 failed: 1 source map(s) not found" in errors[0]
+    assert "missing.exr" in errors[1]

@@ -146,7 +146,24 @@ def build_database(
             map (the message names it), ``out`` that is not a ``.npz`` name, ``out`` that holds
             a database of another jface version or layout, processes given different arguments
             or seeing different files, or a map that changed while the build ran.
+        ChildProcessError: another process of the distributed run failed (its message).
     """
+    run = _Run() if jax.process_count() > 1 else None
+    try:
+        return _build_database(
+            run, sources, out, records, grid, n_scales, n_orientations, bins, boundary, chunk,
+            progress, devices,
+        )  # fmt: skip
+    except BaseException as err:
+        if run is not None:
+            run.fail(err)  # the others stop at once instead of waiting for this share
+        raise
+
+
+def _build_database(
+    run, sources, out, records, grid, n_scales, n_orientations, bins, boundary, chunk, progress,
+    devices,
+) -> Population | None:  # fmt: skip
     sources = [Path(s) for s in sources]
     if not sources:
         raise ValueError("sources must name at least one map, got none")
@@ -179,9 +196,9 @@ def build_database(
         keys = [io.content_key(names, settings) for names in chunks]
         paths = [parts / f"{i * chunk:08d}-{key[:16]}.npz" for i, key in enumerate(keys)]
         process, n_processes = jax.process_index(), jax.process_count()
-        if n_processes > 1:
+        if run is not None:
             fingerprint = json.dumps([str(out.resolve()), keys, records, chunk], sort_keys=True)
-            _same_on_all_processes("db build arguments and maps", fingerprint)
+            run.same_on_all("the command's arguments or its maps' contents", fingerprint)
         mine = range(process, len(chunks), n_processes)
         devices = list(devices or jax.local_devices())
         for i in tqdm(mine, desc="analyze", unit="chunk", disable=not progress):
@@ -193,8 +210,8 @@ def build_database(
             sources_meta = {"sources": [str(n) for n in chunks[i]], "key": keys[i]}
             io.save_arrays(paths[i], arrays, {**meta, **sources_meta}, kind="DetailStatsChunk")
             io.commit()  # a finished chunk survives a crash of a later one
-        if n_processes > 1:
-            _barrier("db build chunks written")
+        if run is not None:
+            run.gather("finished", "")  # process 0 waits for every share
             if process != 0:
                 return None
         done = []
@@ -293,8 +310,47 @@ DETERMINISTIC_CPU_FLAGS = "--xla_cpu_multi_thread_eigen=false"
 splits its rows over threads as they come free, which changes the last bit of some results from
 run to run. Parallelism then comes from devices and processes (whole maps), not threads."""
 
-_WAIT_S = 7 * 24 * 3600  # processes wait for each other's shares; a dead one is found by heartbeat
-_exchanges = itertools.count()  # every process makes the same calls in the same order
+_runs = itertools.count()  # every process makes the same calls in the same order
+
+
+class _Run:
+    """Exchanges between the processes of one distributed call, through the coordinator's
+    key-value store. A process that fails posts its error, and every process waiting for the
+    others raises it at once; a process that dies unannounced is found by the heartbeat."""
+
+    def __init__(self):
+        from jax._src import distributed  # the coordination service's key-value store
+
+        self.client = distributed.global_state.client
+        self.prefix = f"jface/run{next(_runs)}"
+
+    def fail(self, err: BaseException) -> None:
+        with contextlib.suppress(Exception):  # the coordinator may be gone already
+            message = " ".join(str(err).split()) or type(err).__name__
+            self.client.key_value_set(f"{self.prefix}/failed/{jax.process_index()}", message)
+
+    def gather(self, name: str, value: str) -> list[str]:
+        """Post this process's ``value``; wait for every process's (process ``i``'s at ``i``)."""
+        self.client.key_value_set(f"{self.prefix}/{name}/{jax.process_index()}", value)
+        n = jax.process_count()
+        while True:
+            failed = self.client.key_value_dir_get(f"{self.prefix}/failed/")
+            if failed:
+                key, message = sorted(failed)[0]
+                raise ChildProcessError(f"process {key.rpartition('/')[2]} failed: {message}")
+            posted = dict(self.client.key_value_dir_get(f"{self.prefix}/{name}/"))
+            if len(posted) == n:
+                return [posted[f"{self.prefix}/{name}/{i}"] for i in range(n)]
+            time.sleep(0.05)
+
+    def same_on_all(self, what: str, value: str) -> None:
+        values = self.gather("agree", value)
+        differ = [i for i, v in enumerate(values) if v != values[0]]
+        if differ:
+            raise ValueError(
+                f"process(es) {differ} differ from process 0 in {what}: every process must run "
+                "the same command on the same files"
+            )
 
 
 def join_processes(
@@ -341,8 +397,9 @@ def join_processes(
         process_id=process_id,
         initialization_timeout=int(timeout),
         heartbeat_timeout_seconds=int(timeout),
+        shutdown_timeout_seconds=int(timeout),
     )
-    counts = _same_on_all_processes("the process count", str(num_processes), check=False)
+    counts = _Run().gather("num_processes", str(num_processes))
     if len(set(counts)) > 1:
         raise ValueError(
             f"the processes were given different process counts: {counts} (process i gave "
@@ -363,35 +420,6 @@ def _wait_for_coordinator(host: str, port: int, timeout: float) -> None:
                     "is process 0 running, and is the port open to this host?"
                 ) from None
             time.sleep(0.2)
-
-
-def _client():
-    from jax._src import distributed  # the coordination service's key-value store and barriers
-
-    return distributed.global_state.client
-
-
-def _same_on_all_processes(what: str, value: str, *, check: bool = True) -> list[str]:
-    """Every process's ``value`` (process ``i``'s at index ``i``); unless ``check=False``,
-    raise ValueError when they differ."""
-    name = f"jface/{next(_exchanges)}"
-    client = _client()
-    client.key_value_set(f"{name}/{jax.process_index()}", value)
-    values = [
-        client.blocking_key_value_get(f"{name}/{i}", _WAIT_S * 1000)
-        for i in range(jax.process_count())
-    ]
-    if check and len(set(values)) > 1:
-        differ = [i for i, v in enumerate(values) if v != values[0]]
-        raise ValueError(
-            f"processes {differ} differ from process 0 in {what}: every process must run the "
-            "same command on the same files"
-        )
-    return values
-
-
-def _barrier(what: str) -> None:
-    _client().wait_at_barrier(f"jface/{next(_exchanges)}/{what}", _WAIT_S * 1000)
 
 
 def run_local_processes(command: Sequence[str], processes: int, *, timeout: float = 60.0) -> None:
