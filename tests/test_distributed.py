@@ -210,3 +210,14 @@ def test_a_failing_process_stops_the_others(maps, tmp_path):
     assert [worker.returncode for worker in workers] == [2, 2]
     assert "process 1 failed: 1 source map(s) not found" in errors[0]
     assert "missing.exr" in errors[1]
+
+
+def test_cluster_outside_a_cluster_job_is_refused(maps, tmp_path):
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("SLURM_", "OMPI_", "PMI"))}
+    entry = "import sys; from jface.cli import main; sys.exit(main())"
+    argv = ["db", "build", *maps[:2], "--out", str(tmp_path / "db.npz"), *LAYOUT, "--cluster"]
+    done = subprocess.run(
+        [sys.executable, "-c", entry, *argv], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2
+    assert "found no cluster job to join" in done.stderr

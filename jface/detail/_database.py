@@ -382,7 +382,13 @@ def join_processes(
         )
     timeout = _checks.real(timeout, "timeout", low=1.0)
     if coordinator is None:
-        jax.distributed.initialize(initialization_timeout=int(timeout))
+        try:
+            jax.distributed.initialize(initialization_timeout=int(timeout))
+        except ValueError as err:  # JAX names its missing argument, not the missing cluster
+            raise ValueError(
+                f"found no cluster job to join (SLURM, Open MPI, TPU pod): {err}; give the "
+                "coordinator, process id and process count instead"
+            ) from err
         return
     num_processes = _checks.integer(num_processes, "num_processes", low=1)
     process_id = _checks.integer(process_id, "process_id", low=0, high=num_processes - 1)
