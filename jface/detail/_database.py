@@ -197,7 +197,7 @@ def _build_database(
         paths = [parts / f"{i * chunk:08d}-{key[:16]}.npz" for i, key in enumerate(keys)]
         process, n_processes = jax.process_index(), jax.process_count()
         if run is not None:
-            fingerprint = json.dumps([str(out.resolve()), keys, records, chunk], sort_keys=True)
+            fingerprint = json.dumps([str(out), keys, records, chunk], sort_keys=True)
             run.same_on_all("the command's arguments or its maps' contents", fingerprint)
         mine = range(process, len(chunks), n_processes)
         devices = list(devices or jax.local_devices())
