@@ -122,8 +122,9 @@ def build_database(
     see). The database has the same bytes as a one-process build (each map is analysed by the
     same single-map program, whatever the chunk, device or process count; on CPU this needs
     XLA's single-threaded Eigen, :func:`deterministic_cpu_flags`, which ``jface db build``
-    sets). A process that stops lets the others fail within the heartbeat timeout; a rerun
-    reuses every finished chunk, whichever process wrote it.
+    sets). A process that fails stops the others at once with its message, one that dies
+    unannounced within the heartbeat timeout; a rerun reuses every finished chunk, whichever
+    process wrote it.
 
     Args:
         sources: map files (EXR, PNG, .npy), all of one size.
@@ -305,7 +306,7 @@ def _common_shape(sources: Sequence[Path]) -> tuple[int, int]:
 
 # --- processes of a jax.distributed run -------------------------------------------------------
 
-DETERMINISTIC_CPU_FLAGS = "--xla_cpu_multi_thread_eigen=false"
+_DETERMINISTIC_CPU_FLAGS = "--xla_cpu_multi_thread_eigen=false"
 """XLA flags under which CPU results do not depend on thread scheduling: a multi-threaded FFT
 splits its rows over threads as they come free, which changes the last bit of some results from
 run to run. Parallelism then comes from devices and processes (whole maps), not threads."""
@@ -319,7 +320,8 @@ class _Run:
     others raises it at once; a process that dies unannounced is found by the heartbeat."""
 
     def __init__(self):
-        from jax._src import distributed  # the coordination service's key-value store
+        # the coordination service's key-value store: JAX has no public handle on it
+        from jax._src import distributed
 
         self.client = distributed.global_state.client
         self.prefix = f"jface/run{next(_runs)}"
@@ -438,7 +440,7 @@ def run_local_processes(command: Sequence[str], processes: int, *, timeout: floa
 
     Raises:
         ValueError: ``processes`` below 1.
-        RuntimeError: a process failed (its exit status and its own message on stderr).
+        ChildProcessError: a process failed (its exit status; its own message is on stderr).
         KeyboardInterrupt: interrupted; the processes are stopped first.
     """
     processes = _checks.integer(processes, "processes", low=1)
@@ -461,7 +463,7 @@ def run_local_processes(command: Sequence[str], processes: int, *, timeout: floa
             codes = [child.poll() for child in children]
             failed = [i for i, code in enumerate(codes) if code not in (None, 0)]
             if failed:
-                raise RuntimeError(
+                raise ChildProcessError(
                     f"process {failed[0]} of {processes} failed (exit status "
                     f"{codes[failed[0]]}); the others were stopped. Finished chunks are kept: "
                     "run the command again to resume"
@@ -482,8 +484,9 @@ def run_local_processes(command: Sequence[str], processes: int, *, timeout: floa
 
 
 def deterministic_cpu_flags(xla_flags: str = "") -> str:
-    """``xla_flags`` with :data:`DETERMINISTIC_CPU_FLAGS` added (unless it sets Eigen's
-    threading itself)."""
+    """``xla_flags`` (``XLA_FLAGS``) with ``--xla_cpu_multi_thread_eigen=false`` added, unless it
+    sets Eigen's threading itself: then CPU results do not depend on thread scheduling (see
+    :data:`_DETERMINISTIC_CPU_FLAGS`). Set it before JAX starts."""
     if "xla_cpu_multi_thread_eigen" in xla_flags:
         return xla_flags
-    return f"{xla_flags} {DETERMINISTIC_CPU_FLAGS}".strip()
+    return f"{xla_flags} {_DETERMINISTIC_CPU_FLAGS}".strip()
