@@ -7,6 +7,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -221,3 +222,21 @@ def test_cluster_outside_a_cluster_job_is_refused(maps, tmp_path):
     )
     assert done.returncode == 2
     assert "found no cluster job to join" in done.stderr
+
+
+def test_a_map_changed_during_the_build_is_refused(maps, tmp_path, monkeypatch):
+    paths = [tmp_path / f"m{i}.exr" for i in range(4)]
+    for path, source in zip(paths, maps, strict=False):
+        path.write_bytes(Path(source).read_bytes())
+    real = io.read_map
+
+    def read_then_edit(path, *args, **kwargs):  # another program rewrites m2 as it is read
+        image = real(path, *args, **kwargs)
+        if str(path).endswith("m2.exr"):
+            Path(path).write_bytes(Path(path).read_bytes() + b"edit")
+        return image
+
+    monkeypatch.setattr(io, "read_map", read_then_edit)
+    with pytest.raises(ValueError, match=r"m2\.exr, .*m3\.exr changed while the build ran"):
+        detail.build_database(paths, tmp_path / "db.npz", grid=4, n_scales=2, chunk=2)
+    assert len(list((tmp_path / "db.npz.parts").glob("*.npz"))) == 1  # the first chunk stays

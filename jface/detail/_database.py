@@ -146,7 +146,8 @@ def build_database(
             records that do not match the maps (count, missing or repeated ids), an unreadable
             map (the message names it), ``out`` that is not a ``.npz`` name, ``out`` that holds
             a database of another jface version or layout, processes given different arguments
-            or seeing different files, or a map that changed while the build ran.
+            or seeing different files, or a map or finished chunk that changed while the build
+            ran.
         ChildProcessError: another process of the distributed run failed (its message).
     """
     run = _Run() if jax.process_count() > 1 else None
@@ -206,6 +207,11 @@ def _build_database(
             if _part(paths[i], keys[i]) is not None:
                 continue
             images = np.stack([io.read_map(name) for name in chunks[i]])
+            if io.content_key(chunks[i], settings) != keys[i]:
+                raise ValueError(
+                    f"a map of {', '.join(map(str, chunks[i]))} changed while the build ran "
+                    "(its content differs from when the build started); run it again"
+                )
             stats = analyze_batch(images, devices=devices, **layout)
             arrays, meta = stats_to_arrays(stats)
             sources_meta = {"sources": [str(n) for n in chunks[i]], "key": keys[i]}
@@ -220,9 +226,8 @@ def _build_database(
             part = _part(path, key)
             if part is None:
                 raise ValueError(
-                    f"the chunk of {names[0]} ... {names[-1]} is missing or was analysed from "
-                    f"other file contents ({path}): a map changed while the build ran; run it "
-                    "again to analyse the changed maps"
+                    f"the finished chunk of {names[0]} ... {names[-1]} ({path}) was removed or "
+                    "replaced while the build ran; run it again"
                 )
             done.append(part)
         merged = jax.tree.map(lambda *xs: jnp.concatenate(xs), *done)
