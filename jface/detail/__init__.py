@@ -29,7 +29,13 @@ from jface.detail._applications import (
     sharpen,
     transfer_detail,
 )
-from jface.detail._database import analyze_batch, build_database
+from jface.detail._database import (
+    analyze_batch,
+    build_database,
+    deterministic_cpu_flags,
+    join_processes,
+    run_local_processes,
+)
 from jface.detail._meshes import (
     Face,
     FaceInterpolation,
@@ -73,9 +79,11 @@ __all__ = [
     "compare_groups",
     "compare_methods",
     "cross_validate",
+    "deterministic_cpu_flags",
     "group_by",
     "interpolate",
     "interpolate_faces",
+    "join_processes",
     "load_stats",
     "log_features",
     "mean_stats",
@@ -83,6 +91,7 @@ __all__ = [
     "method_scores",
     "perlin_detail",
     "remove_detail",
+    "run_local_processes",
     "save_stats",
     "sharpen",
     "stack_stats",

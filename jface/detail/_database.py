@@ -1,12 +1,20 @@
-"""Building a statistics database from many displacement maps: chunked, vmapped, sharded over all
-devices, with progress, and resumable (a crash keeps every finished chunk)."""
+"""Building a statistics database from many displacement maps: chunked, sharded over all
+devices, spread over the processes of a ``jax.distributed`` run, with progress, and resumable (a
+crash keeps every finished chunk). The result does not depend on the chunk size, the device count
+or the process count: the same maps give the same bytes."""
 
 from __future__ import annotations
 
 import collections
 import contextlib
 import functools
+import itertools
+import json
 import os
+import socket
+import subprocess
+import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -40,12 +48,12 @@ def analyze_batch(
 ) -> DetailStats:
     """:func:`jface.detail.analyze` of a stack ``(n, H, W)``, sharded over devices.
 
-    The batch axis is split over ``devices`` (default: all of JAX's devices) with
-    ``jax.sharding``; each device runs the vmapped analysis on its share. The result equals
-    ``jax.vmap(analyze)(images)``.
+    The batch axis is split over ``devices`` (default: this process's devices) with
+    ``jax.sharding``; each device analyses its share one map at a time. The result equals
+    ``jax.vmap(analyze)(images)``, and a map's result has the same bits in any batch.
     """
     images = _checks.float_array(images, "images", ndim=3)
-    devices = list(devices or jax.devices())
+    devices = list(devices or jax.local_devices())
     n = images.shape[0]
     grid, n_scales, n_orientations, bins = validate_layout(
         images.shape[1:], grid, n_scales, n_orientations, bins, boundary
@@ -57,15 +65,29 @@ def analyze_batch(
         )
     mesh = Mesh(np.array(devices), ("batch",))
     images = jax.device_put(images, NamedSharding(mesh, PartitionSpec("batch")))
-    stats = _analyze_stack(images, grid, n_scales, n_orientations, bins, boundary)
+    stats = _analyze_stack(images, mesh, grid, n_scales, n_orientations, bins, boundary)
     return jax.tree.map(lambda x: x[:n], stats)
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5))
-def _analyze_stack(images, grid, n_scales, n_orientations, bins, boundary) -> DetailStats:
-    # Module level, so every chunk of a batch run reuses one compilation; the input's sharding
-    # splits the vmapped work over the devices.
-    return jax.vmap(lambda x: _analyze(x, grid, n_scales, n_orientations, bins, boundary))(images)
+@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4, 5, 6))
+def _analyze_stack(images, mesh, grid, n_scales, n_orientations, bins, boundary) -> DetailStats:
+    # Module level, so every chunk of a batch run reuses one compilation. Each device analyses
+    # its share one map at a time (lax.map, not vmap): a batched FFT groups rows of neighbouring
+    # maps into its vector lanes, which changes the last bit of a map's result with the batch
+    # size; one map's program gives the same bits in any chunk, on any number of devices or
+    # processes.
+    one = functools.partial(
+        _analyze,
+        grid=grid,
+        n_scales=n_scales,
+        n_orientations=n_orientations,
+        bins=bins,
+        boundary=boundary,
+    )
+    share = PartitionSpec("batch")
+    return jax.shard_map(lambda x: jax.lax.map(one, x), mesh=mesh, in_specs=share, out_specs=share)(
+        images
+    )
 
 
 def build_database(
@@ -81,8 +103,9 @@ def build_database(
     chunk: int = 8,
     progress: bool = True,
     devices: Sequence[jax.Device] | None = None,
-) -> Population:
-    """Analyse many displacement maps into one population file, resumably.
+) -> Population | None:
+    """Analyse many displacement maps into one population file, resumably, on one process or
+    on all processes of a ``jax.distributed`` run.
 
     Every map's size is read from its header first, so maps of mixed sizes or a layout that
     does not fit them fail before any analysis. Maps are then read and analysed ``chunk`` at a
@@ -92,6 +115,16 @@ def build_database(
     rerun after a crash reuses the chunks whose key still matches and analyses the rest, so a
     map edited in between is analysed again. When all chunks are done, the population is written
     to ``out`` and the parts are removed. ``out`` is never one of the sources.
+
+    Under ``jax.distributed`` (:func:`join_processes`), every process runs this call with the
+    same arguments: chunk ``i`` is analysed by process ``i % jax.process_count()`` on its own
+    devices, and process 0 merges the parts (``out`` must be on a file system all processes
+    see). The database has the same bytes as a one-process build (each map is analysed by the
+    same single-map program, whatever the chunk, device or process count; on CPU this needs
+    XLA's single-threaded Eigen, :func:`deterministic_cpu_flags`, which ``jface db build``
+    sets). A process that fails stops the others at once with its message, one that dies
+    unannounced within the heartbeat timeout; a rerun reuses every finished chunk, whichever
+    process wrote it.
 
     Args:
         sources: map files (EXR, PNG, .npy), all of one size.
@@ -105,14 +138,34 @@ def build_database(
         devices: devices to shard over (default: all).
 
     Returns:
-        The :class:`Population`.
+        The :class:`Population` (None on processes other than 0 of a distributed run).
 
     Raises:
         FileNotFoundError: a source that does not exist.
         ValueError: no sources, a source given twice, maps of different sizes, a bad layout,
             records that do not match the maps (count, missing or repeated ids), an unreadable
-            map (the message names it), or ``out`` that is not a new ``.npz`` name.
+            map (the message names it), ``out`` that is not a ``.npz`` name, ``out`` that holds
+            a database of another jface version or layout, processes given different arguments
+            or seeing different files, or a map or finished chunk that changed while the build
+            ran.
+        ChildProcessError: another process of the distributed run failed (its message).
     """
+    run = _Run() if jax.process_count() > 1 else None
+    try:
+        return _build_database(
+            run, sources, out, records, grid, n_scales, n_orientations, bins, boundary, chunk,
+            progress, devices,
+        )  # fmt: skip
+    except BaseException as err:
+        if run is not None:
+            run.fail(err)  # the others stop at once instead of waiting for this share
+        raise
+
+
+def _build_database(
+    run, sources, out, records, grid, n_scales, n_orientations, bins, boundary, chunk, progress,
+    devices,
+) -> Population | None:  # fmt: skip
     sources = [Path(s) for s in sources]
     if not sources:
         raise ValueError("sources must name at least one map, got none")
@@ -138,26 +191,45 @@ def build_database(
             "bins": bins,
             "boundary": boundary,
         }
+        _check_previous(out, layout, shape)
         parts = out.with_name(out.name + ".parts")
-        done: list[DetailStats] = []
-        starts = range(0, len(sources), chunk)
-        for start in tqdm(starts, desc="analyze", unit="chunk", disable=not progress):
-            names = sources[start : start + chunk]
-            key = io.content_key(names, {"kind": "DetailStatsChunk", **layout})
-            part = parts / f"{start:08d}-{key[:16]}.npz"
-            if part.exists():
-                with io.own_outputs():
-                    arrays, meta = io.load_arrays(part, kind="DetailStatsChunk")
-                if meta.get("key") == key:
-                    done.append(stats_from_arrays(arrays, meta, part))
-                    continue
-            images = np.stack([io.read_map(name) for name in names])
+        chunks = [sources[start : start + chunk] for start in range(0, len(sources), chunk)]
+        settings = {"kind": "DetailStatsChunk", **layout}
+        keys = [io.content_key(names, settings) for names in chunks]
+        paths = [parts / f"{i * chunk:08d}-{key[:16]}.npz" for i, key in enumerate(keys)]
+        process, n_processes = jax.process_index(), jax.process_count()
+        if run is not None:
+            fingerprint = json.dumps([str(out), keys, records, chunk], sort_keys=True)
+            run.same_on_all("the command's arguments or its maps' contents", fingerprint)
+        mine = range(process, len(chunks), n_processes)
+        devices = list(devices or jax.local_devices())
+        for i in tqdm(mine, desc="analyze", unit="chunk", disable=not progress):
+            if _part(paths[i], keys[i]) is not None:
+                continue
+            images = np.stack([io.read_map(name) for name in chunks[i]])
+            if io.content_key(chunks[i], settings) != keys[i]:
+                raise ValueError(
+                    f"a map of {', '.join(map(str, chunks[i]))} changed while the build ran "
+                    "(its content differs from when the build started); run it again"
+                )
             stats = analyze_batch(images, devices=devices, **layout)
             arrays, meta = stats_to_arrays(stats)
-            sources_meta = {"sources": [str(n) for n in names], "key": key}
-            io.save_arrays(part, arrays, {**meta, **sources_meta}, kind="DetailStatsChunk")
+            sources_meta = {"sources": [str(n) for n in chunks[i]], "key": keys[i]}
+            io.save_arrays(paths[i], arrays, {**meta, **sources_meta}, kind="DetailStatsChunk")
             io.commit()  # a finished chunk survives a crash of a later one
-            done.append(stats)
+        if run is not None:
+            run.gather("finished", "")  # process 0 waits for every share
+            if process != 0:
+                return None
+        done = []
+        for path, key, names in zip(paths, keys, chunks, strict=True):
+            part = _part(path, key)
+            if part is None:
+                raise ValueError(
+                    f"the finished chunk of {names[0]} ... {names[-1]} ({path}) was removed or "
+                    "replaced while the build ran; run it again"
+                )
+            done.append(part)
         merged = jax.tree.map(lambda *xs: jnp.concatenate(xs), *done)
         population = Population(merged, tuple(records))
         population.save(out, boundary=boundary, sources=labels)
@@ -167,6 +239,41 @@ def build_database(
         with contextlib.suppress(OSError):  # a folder the user put other files in stays
             parts.rmdir()
     return population
+
+
+def _part(path: Path, key: str) -> DetailStats | None:
+    """The statistics of a finished chunk, or None when it is not there or was analysed from
+    other contents or settings (its key differs)."""
+    if not path.exists():
+        return None
+    with io.own_outputs():
+        arrays, meta = io.load_arrays(path, kind="DetailStatsChunk")
+    return stats_from_arrays(arrays, meta, path) if meta.get("key") == key else None
+
+
+def _check_previous(out: Path, layout: dict[str, Any], shape: tuple[int, int]) -> None:
+    """Refuse to replace a database of another jface version or layout: a study's files must
+    not mix, and a rebuild with other settings is a new database under a new name."""
+    from jface import __version__
+
+    if not out.exists():
+        return
+    try:
+        with io.own_outputs():
+            _, meta = io.load_arrays(out, kind="Population")
+    except ValueError as err:
+        raise ValueError(
+            f"{out} exists and is not a jface database ({err}); choose another name"
+        ) from err
+    wanted = {"jface_version": __version__, **layout, "image_shape": list(shape)}
+    wanted.pop("bins")  # a database stores its histograms, not the bin count as a setting
+    differ = {k: (meta.get(k), v) for k, v in wanted.items() if meta.get(k) != v}
+    if differ:
+        what = ", ".join(f"{k} {old!r} (now {new!r})" for k, (old, new) in differ.items())
+        raise ValueError(
+            f"{out} holds a database of another version or layout: {what}; "
+            "remove it or choose another --out"
+        )
 
 
 def _labels(sources: Sequence[Path]) -> list[str]:
@@ -200,3 +307,191 @@ def _common_shape(sources: Sequence[Path]) -> tuple[int, int]:
                 "the maps of a database must have one size"
             )
     return first
+
+
+# --- processes of a jax.distributed run -------------------------------------------------------
+
+_DETERMINISTIC_CPU_FLAGS = "--xla_cpu_multi_thread_eigen=false"
+"""XLA flags under which CPU results do not depend on thread scheduling: a multi-threaded FFT
+splits its rows over threads as they come free, which changes the last bit of some results from
+run to run. Parallelism then comes from devices and processes (whole maps), not threads."""
+
+_runs = itertools.count()  # every process makes the same calls in the same order
+
+
+class _Run:
+    """Exchanges between the processes of one distributed call, through the coordinator's
+    key-value store. A process that fails posts its error, and every process waiting for the
+    others raises it at once; a process that dies unannounced is found by the heartbeat."""
+
+    def __init__(self):
+        # the coordination service's key-value store: JAX has no public handle on it
+        from jax._src import distributed
+
+        self.client = distributed.global_state.client
+        self.prefix = f"jface/run{next(_runs)}"
+
+    def fail(self, err: BaseException) -> None:
+        with contextlib.suppress(Exception):  # the coordinator may be gone already
+            message = " ".join(str(err).split()) or type(err).__name__
+            self.client.key_value_set(f"{self.prefix}/failed/{jax.process_index()}", message)
+
+    def gather(self, name: str, value: str) -> list[str]:
+        """Post this process's ``value``; wait for every process's (process ``i``'s at ``i``)."""
+        self.client.key_value_set(f"{self.prefix}/{name}/{jax.process_index()}", value)
+        n = jax.process_count()
+        while True:
+            failed = self.client.key_value_dir_get(f"{self.prefix}/failed/")
+            if failed:
+                key, message = sorted(failed)[0]
+                raise ChildProcessError(f"process {key.rpartition('/')[2]} failed: {message}")
+            posted = dict(self.client.key_value_dir_get(f"{self.prefix}/{name}/"))
+            if len(posted) == n:
+                return [posted[f"{self.prefix}/{name}/{i}"] for i in range(n)]
+            time.sleep(0.05)
+
+    def same_on_all(self, what: str, value: str) -> None:
+        values = self.gather("agree", value)
+        differ = [i for i, v in enumerate(values) if v != values[0]]
+        if differ:
+            raise ValueError(
+                f"process(es) {differ} differ from process 0 in {what}: every process must run "
+                "the same command on the same files"
+            )
+
+
+def join_processes(
+    coordinator: str | None = None,
+    process_id: int | None = None,
+    num_processes: int | None = None,
+    *,
+    timeout: float = 60.0,
+) -> None:
+    """Start ``jax.distributed`` for this process, before any JAX computation.
+
+    With ``coordinator`` (``"HOST:PORT"``, served by process 0), ``process_id`` and
+    ``num_processes`` it joins those processes; with none of them JAX detects the cluster
+    (SLURM, Open MPI, TPU pods). Process 0 opens the coordinator; the others first check that
+    it can be reached, so a wrong address fails within ``timeout`` with a clear message instead
+    of an abort. All processes then check that they were told the same ``num_processes``.
+
+    Raises:
+        ValueError: some but not all of the three, a malformed address, ``process_id`` outside
+            ``[0, num_processes)``, or processes that disagree on ``num_processes``.
+        ConnectionError: the coordinator cannot be reached within ``timeout`` seconds.
+    """
+    given = [coordinator is not None, process_id is not None, num_processes is not None]
+    if any(given) and not all(given):
+        raise ValueError(
+            "coordinator, process_id and num_processes go together (or none of them, to detect "
+            f"the cluster); got coordinator={coordinator!r}, process_id={process_id!r}, "
+            f"num_processes={num_processes!r}"
+        )
+    timeout = _checks.real(timeout, "timeout", low=1.0)
+    if coordinator is None:
+        try:
+            jax.distributed.initialize(initialization_timeout=int(timeout))
+        except ValueError as err:  # JAX names its missing argument, not the missing cluster
+            raise ValueError(
+                f"found no cluster job to join (SLURM, Open MPI, TPU pod): {err}; give the "
+                "coordinator, process id and process count instead"
+            ) from err
+        return
+    num_processes = _checks.integer(num_processes, "num_processes", low=1)
+    process_id = _checks.integer(process_id, "process_id", low=0, high=num_processes - 1)
+    host, _, port = str(coordinator).rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"coordinator must be HOST:PORT (port 1-65535), got {coordinator!r}")
+    if process_id != 0:
+        _wait_for_coordinator(host.strip("[]"), int(port), timeout)
+    jax.distributed.initialize(
+        coordinator,
+        num_processes=num_processes,
+        process_id=process_id,
+        initialization_timeout=int(timeout),
+        heartbeat_timeout_seconds=int(timeout),
+        shutdown_timeout_seconds=int(timeout),
+    )
+    counts = _Run().gather("num_processes", str(num_processes))
+    if len(set(counts)) > 1:
+        raise ValueError(
+            f"the processes were given different process counts: {counts} (process i gave "
+            "item i); give every process the same num_processes"
+        )
+
+
+def _wait_for_coordinator(host: str, port: int, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=min(5.0, timeout)):
+                return
+        except OSError as err:
+            if time.monotonic() > deadline:
+                raise ConnectionError(
+                    f"cannot reach the coordinator {host}:{port} within {timeout:g} s ({err}); "
+                    "is process 0 running, and is the port open to this host?"
+                ) from None
+            time.sleep(0.2)
+
+
+def run_local_processes(command: Sequence[str], processes: int, *, timeout: float = 60.0) -> None:
+    """Run ``jface COMMAND`` as ``processes`` processes of one ``jax.distributed`` run on this
+    machine (coordinator on localhost, a free port), and wait for them.
+
+    Each process gets ``--coordinator``, ``--process-id``, ``--num-processes`` and ``--timeout``
+    appended, and :func:`deterministic_cpu_flags` in ``XLA_FLAGS``. When one fails, the others
+    are stopped (they remove their unfinished files; finished chunks stay for a rerun).
+
+    Raises:
+        ValueError: ``processes`` below 1.
+        ChildProcessError: a process failed (its exit status; its own message is on stderr).
+        KeyboardInterrupt: interrupted; the processes are stopped first.
+    """
+    processes = _checks.integer(processes, "processes", low=1)
+    with socket.socket() as probe:  # a port free now; the coordinator binds it a moment later
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    env = dict(os.environ, XLA_FLAGS=deterministic_cpu_flags(os.environ.get("XLA_FLAGS", "")))
+    entry = "import sys; from jface.cli import main; sys.exit(main(sys.argv[1:]))"
+    children = []
+    for i in range(processes):
+        flags = ["--coordinator", f"127.0.0.1:{port}", "--process-id", str(i)]
+        flags += ["--num-processes", str(processes), "--timeout", f"{timeout:g}"]
+        # process 0 reports; the others would repeat its progress and summary
+        out = None if i == 0 else subprocess.DEVNULL
+        children.append(
+            subprocess.Popen([sys.executable, "-c", entry, *command, *flags], env=env, stdout=out)
+        )
+    try:
+        while True:
+            codes = [child.poll() for child in children]
+            failed = [i for i, code in enumerate(codes) if code not in (None, 0)]
+            if failed:
+                raise ChildProcessError(
+                    f"process {failed[0]} of {processes} failed (exit status "
+                    f"{codes[failed[0]]}); the others were stopped. Finished chunks are kept: "
+                    "run the command again to resume"
+                )
+            if all(code == 0 for code in codes):
+                return
+            time.sleep(0.1)
+    finally:
+        for child in children:
+            if child.poll() is None:
+                child.terminate()
+        for child in children:
+            try:
+                child.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.wait()
+
+
+def deterministic_cpu_flags(xla_flags: str = "") -> str:
+    """``xla_flags`` (``XLA_FLAGS``) with ``--xla_cpu_multi_thread_eigen=false`` added, unless it
+    sets Eigen's threading itself: then CPU results do not depend on thread scheduling (see
+    :data:`_DETERMINISTIC_CPU_FLAGS`). Set it before JAX starts."""
+    if "xla_cpu_multi_thread_eigen" in xla_flags:
+        return xla_flags
+    return f"{xla_flags} {_DETERMINISTIC_CPU_FLAGS}".strip()
