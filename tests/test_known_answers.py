@@ -15,6 +15,7 @@ from scipy import integrate
 from jface.noise import counter_uniform
 from jface.optim import pso
 from jface.wrinkles import WrinkleParams, build_graph, make_pores, mellowmax, shape_function
+from jface.wrinkles._drawing import pore_strength
 from jface.wrinkles._simulation import (
     continuation_kernel,
     half_edge_scores,
@@ -236,3 +237,14 @@ def test_swarm_epochs_replay_eq14_15_in_numpy():
     best, history = _numpy_swarm(key, loss, 6, 3, 5, **settings)
     np.testing.assert_allclose(np.asarray(res.history[0]), history, rtol=1e-4, atol=1e-7)
     np.testing.assert_allclose(np.asarray(res.params), best, atol=1e-5)
+
+
+def test_pore_strength_by_hand(graph):
+    # Eq. 12–13: w_v = max(w_max + α_dmin, w_max + α_blend (Σ w − w_max)) over incident edges
+    g = jax.tree.map(np.asarray, graph)
+    w = np.where(g.edge_mask, np.linspace(0.05, 0.9, g.edge_mask.shape[0]), 0.0)
+    got = np.asarray(pore_strength(graph, jnp.asarray(w), 0.1, 0.4))
+    for i in range(int(g.node_count)):
+        incident = w[g.half_edge[i][g.half_mask[i]]]
+        top, total = incident.max(), incident.sum()
+        assert got[i] == pytest.approx(max(top + 0.1, top + 0.4 * (total - top)), rel=1e-6)
