@@ -252,7 +252,8 @@ def main() -> None:
             caught = not passed
             rows.append((m, caught, failed, time.perf_counter() - start))
             print(f"{m.name}: {'caught' if caught else 'MISSED'} by {len(failed)} "
-                  f"({time.perf_counter() - start:.0f} s; {last})", flush=True)  # fmt: skip
+                  f"({time.perf_counter() - start:.0f} s; {last}): {' '.join(failed)}",
+                  flush=True)  # fmt: skip
     print("\n| mutant | caught | # | tests that catch it |\n|---|---|---|---|")
     for m, caught, failed, _ in rows:
         names = ", ".join(f.split("::", 1)[-1] if "::" in f else f for f in failed) or "—"
