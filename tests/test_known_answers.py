@@ -248,3 +248,21 @@ def test_pore_strength_by_hand(graph):
         incident = w[g.half_edge[i][g.half_mask[i]]]
         top, total = incident.max(), incident.sum()
         assert got[i] == pytest.approx(max(top + 0.1, top + 0.4 * (total - top)), rel=1e-6)
+
+
+def test_free_flight_follows_the_inertia_schedule():
+    # with c1 = c2 = 0 each step is Δt w_t v (Eq. 14–15), so successive steps of an agent shrink
+    # by w_t = a + b c^t (to float32 rounding of the tiny steps that keep the agents in the box)
+    seen = []
+
+    def loss(x):
+        jax.debug.callback(lambda p: seen.append(np.asarray(p, np.float64)), x)
+        return jnp.sum(x, axis=-1)
+
+    a, b, c = 0.3, 0.5, 0.7
+    pso(jax.random.key(5), loss, (np.zeros(2), np.ones(2)), n_agents=4, n_epochs=5,
+        dt=1e-3, c1=0.0, c2=0.0, inertia=(a, b, c), batched=True)  # fmt: skip
+    steps = np.diff(np.stack(seen), axis=0)  # (epochs, agents, dims)
+    ratios = steps[1:] / steps[:-1]
+    want = a + b * c ** np.arange(1, 5)
+    np.testing.assert_allclose(ratios, np.broadcast_to(want[:, None, None], ratios.shape), 1e-2)
