@@ -11,7 +11,7 @@ import pytest
 from scipy import sparse, stats
 from scipy.sparse import linalg as sparse_linalg
 
-from jface import tiles
+from jface import faces, tiles
 from jface.faces import (
     MixtureOfFactorAnalysers,
     fit_factor_analyser,
@@ -219,3 +219,19 @@ def test_masked_em_step_is_the_same_under_jit(masked_case):
     jitted = jax.tree.leaves(jax.jit(masked_step)(*args))
     for a, b in zip(eager, jitted, strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
+
+
+def test_quilting_picks_the_cheapest_patch_for_a_target_weight_other_than_one():
+    # the cost of §2.2, SSD to the known pixels + λ SSD to the target, with λ ≠ 1 so that a
+    # misplaced λ shows: with n_best = 1 each choice is the argmin of a float64 replay
+    from skimage import data
+    from test_faces_quilting import GRID, replay_costs
+
+    lfw = np.asarray(data.lfw_subset()[:30], np.float32)
+    library = faces.build_library(lfw[1:], GRID, translations=0, angles=())
+    for lam in (0.2, 5.0):
+        result = faces.quilt(jax.random.key(0), library, lfw[0], lam=lam, n_best=1)
+        steps = replay_costs(library, result, lfw[0], lam=lam)
+        assert len(steps) > 4
+        for cost, chosen in steps:
+            assert cost[chosen] <= cost.min() + 1e-4 * max(1.0, abs(cost.min()))
