@@ -46,7 +46,7 @@ SIM = (
     KA,
     "tests/test_wrinkles_simulation.py",
     "-k",
-    "not (bad or json or perlin or default_run or capacity)",
+    "not (bad or json or perlin or default_run)",
 )
 DRAW = (
     KA,
@@ -64,7 +64,8 @@ FA = (
     KAF,
     "tests/test_faces_models.py",
     "-k",
-    "not (cli or bad or save or profile or bilinear or constant or refuses or tile or poisson)",
+    "not (cli or bad or save or profile or bilinear or constant or refuses or tile or poisson "
+    "or patch)",
 )
 TILES = (
     KAF,
@@ -75,9 +76,10 @@ TILES = (
 POISSON = (KAF, "tests/test_faces_quilting.py", "-k", "poisson or dst1")
 PYRAMID = ("tests/test_pyramid.py", "-k", "not bad")
 QUILT = (
+    KAF,
     "tests/test_faces_quilting.py",
     "-k",
-    "choices or own_position or one_image or novel or same_key",
+    "cheapest_patch or choices or own_position or one_image or novel or same_key",
 )
 GRAPH = ("tests/test_wrinkles_graph.py", "tests/test_wrinkles_sampling.py", "-k", "not bad")
 SYNTH = (
