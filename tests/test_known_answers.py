@@ -266,3 +266,13 @@ def test_free_flight_follows_the_inertia_schedule():
     ratios = steps[1:] / steps[:-1]
     want = a + b * c ** np.arange(1, 5)
     np.testing.assert_allclose(ratios, np.broadcast_to(want[:, None, None], ratios.shape), 1e-2)
+
+
+def test_full_continuation_weight_leaves_no_orientation_term(graph):
+    # Eq. 3 with α_cont = 1: (1 − α_cont) p_pref vanishes, so from zero weights (p_cont = 0) no
+    # half-edge has a positive score and nothing is deposited
+    params = WrinkleParams(cont=1.0, sim=0.0, cross=0.0)
+    nodes = np.arange(int(graph.node_count))
+    zeros = jnp.zeros(graph.edge_mask.shape[0], jnp.float32)
+    assert not np.asarray(half_edge_scores(graph, params, zeros, nodes)).any()
+    assert not np.asarray(simulate(jax.random.key(0), graph, params, n_steps=3, n_samples=5)).any()

@@ -18,7 +18,7 @@ from jface.faces import (
     poisson_blend,
     responsibilities,
 )
-from jface.faces._em import masked_step
+from jface.faces._em import masked_step, mixture_step
 from jface.faces._em import responsibilities as complete_responsibilities
 
 D, Q, N = 6, 2, 14
@@ -235,3 +235,30 @@ def test_quilting_picks_the_cheapest_patch_for_a_target_weight_other_than_one():
         assert len(steps) > 4
         for cost, chosen in steps:
             assert cost[chosen] <= cost.min() + 1e-4 * max(1.0, abs(cost.min()))
+
+
+def test_mixture_em_step_matches_a_dense_reference():
+    # one EM step of a mixture of factor analysers (Ghahramani & Hinton 1997), component by
+    # component with dense posteriors
+    rng = np.random.default_rng(5)
+    model = _mixture(rng, 2, D, Q)
+    x = rng.normal(size=(20, D)) * 1.5
+    params = (jnp.log(model.weights), model.means, model.factors, model.noise)
+    _, (log_w, means, factors, noise) = mixture_step(
+        jnp.asarray(x), jnp.asarray(x * x), jnp.asarray(1e-9), params
+    )
+    resp = np.array([_scipy_responsibilities(model, xi, np.ones(D, bool)) for xi in x]).T
+    for k in range(2):
+        f, mu, s = (np.asarray(a[k]) for a in (model.factors, model.means, model.noise))
+        cov = np.linalg.inv(np.eye(Q) + f.T @ (f / s[:, None]))
+        eh = (x - mu) / s @ f @ cov
+        z = np.concatenate([eh, np.ones((len(x), 1))], axis=1)
+        big = (resp[k][:, None] * z).T @ z
+        big[:Q, :Q] += resp[k].sum() * cov
+        rows = np.linalg.solve(big, (resp[k][:, None] * z).T @ x).T  # (D, Q+1)
+        np.testing.assert_allclose(np.asarray(factors[k]), rows[:, :Q], rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(np.asarray(means[k]), rows[:, Q], rtol=1e-8, atol=1e-10)
+        explained = np.sum(rows * ((resp[k][:, None] * z).T @ x).T, axis=1)
+        want = (resp[k] @ (x * x) - explained) / resp[k].sum()
+        np.testing.assert_allclose(np.asarray(noise[k]), want, rtol=1e-8)
+        assert float(log_w[k]) == pytest.approx(np.log(resp[k].mean()), rel=1e-9)
