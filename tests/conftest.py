@@ -30,6 +30,71 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
     return np.linalg.norm(q - np.repeat(points, 16, axis=0), axis=1).reshape(-1, 16).min(axis=1)
 
 
+#: The slow tier, in one place: whole modules (None) or tests by name. ``pytest -m "not slow"``
+#: is the fast tier for development; CI runs everything (the README's test command).
+SLOW = {
+    "test_reliability.py": None,  # long runs, large inputs, interrupted jobs
+    "test_real_inputs.py": None,  # full pipelines on the shipped scan and real textures
+    "test_landmarks.py": None,  # model fits on scans
+    "test_mesh_remesh.py": None,
+    "test_detail_meshes.py": None,
+    "test_applications.py": None,
+    "test_database.py": None,
+    "test_wrinkles_realism.py": None,
+    "test_wrinkles_fit.py": None,
+    "test_wrinkles_extract.py": None,
+    "test_fuzz_inputs.py": None,  # hypothesis searches
+    "test_cli_content.py": None,
+    "test_wrinkles_cli.py": None,
+    # the rest: the longest tests of the fast tier as measured (5–33 s each on two cores)
+    "test_detail.py": {
+        "test_fig5_resynthesis_converges_on_real_data",
+        "test_reflect_boundary_synthesis",
+        "test_jit_equals_eager_and_vmap_over_targets",
+        "test_synthesis_is_deterministic_and_vmaps",
+        "test_fixed_point_and_noise_scale",
+        "test_histogram_synthesis_moves_tiles_towards_targets",
+        "test_histogram_matching_reaches_spatially_varying_targets",
+    },
+    "test_wrinkles_simulation.py": {
+        "test_default_run_is_converged",
+        "test_default_run_in_chunks_equals_one_scan",
+        "test_weights_do_not_depend_on_capacity",
+    },
+    "test_wrinkles_draw.py": {
+        "test_jit_eager_vmap_determinism_and_grad",
+        "test_tiled_rasteriser_matches_brute_force",
+        "test_packed_bins_and_passes_as_needed_draw_the_same_map",
+    },
+    "test_transforms.py": {"test_jit_and_vmap"},
+    "test_wrinkles_graph.py": {"test_covering_spec_and_stack_graphs_keep_every_graph"},
+    "test_align.py": {"test_jit_equals_eager_and_vmap_equals_loop"},
+    "test_optim_pso.py": {
+        "test_rastrigin_10d_reaches_the_low_basin",
+        "test_lbest_converges_slower_than_gbest",
+    },
+    "test_faces_models.py": {
+        "test_mixture_separates_frontal_and_profile",
+        "test_bilinear_predicts_held_out_smiles",
+        "test_mixture_em_monotone_and_dense_reference",
+    },
+    "test_faces_quilting.py": {
+        "test_synthesis_from_factor_models",
+        "test_restyle_with_bilinear_model",
+    },
+    "test_known_answers.py": {"test_one_step_hits_follow_eq3_in_distribution"},
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the slow tier: the modules and tests of :data:`SLOW`, and every command-line run
+    (tests named ``test_cli_*``)."""
+    for item in items:
+        names = SLOW.get(item.path.name, ())
+        if names is None or item.originalname in names or item.originalname.startswith("test_cli"):
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_code():
     """Drop JAX's compiled executables after a module once the process holds many memory
