@@ -9,7 +9,8 @@
 3. A vmapped batch of 16 scans resampled to the same size (``sample_surface`` then
    ``fit_samples``): time per scan.
 4. Remeshing with the found landmarks against remeshing with the hand-placed ones: correlation
-   of the two displacement images and each detailed mesh's distance to the scan.
+   of the two displacement images and each detailed mesh's distance to the scan; and where each
+   marker's error comes from (fit, projection, template convention).
 5. How much landmark accuracy the remeshing needs: the hand-placed landmarks moved by random
    offsets of known size (along the scan, a given RMS in % IOD, on all markers or only on the
    eight outline ones), remeshed, and the displacement image correlated with the hand one.
@@ -17,7 +18,8 @@
 There is no reference implementation to time against: the alternative is placing the 21
 markers by hand. Each case prints one JSON line.
 
-Run: ``python benchmarks/bench_landmarks.py`` (``--quick`` for the scan and two variants, the diagnosis and the found-vs-hand remesh only).
+Run: ``python benchmarks/bench_landmarks.py`` (``--quick``: the scan and two variants, the
+diagnosis and the found-vs-hand remesh only).
 """
 
 from __future__ import annotations
