@@ -5,6 +5,7 @@ import json
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
@@ -76,7 +77,7 @@ def test_pose_and_unit_do_not_change_the_markers(lee_perry_smith, found):
 
 def test_sampling_jit_equals_eager_and_vmap_equals_a_loop():
     face = data.mediapipe_face()
-    v, f = np.asarray(face.vertices, np.float32), np.asarray(face.faces, np.int32)
+    v, f = jnp.asarray(face.vertices, jnp.float32), jnp.asarray(face.faces, jnp.int32)
     keys = jax.random.split(jax.random.key(5), 3)
     batched = jax.jit(jax.vmap(mesh.sample_surface, (0, None, None, None)), static_argnums=3)
     many = batched(keys, v, f, 2048)
