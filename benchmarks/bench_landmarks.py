@@ -9,12 +9,17 @@
 3. A vmapped batch of 16 scans resampled to the same size (``sample_surface`` then
    ``fit_samples``): time per scan.
 4. Remeshing with the found landmarks against remeshing with the hand-placed ones: correlation
-   of the two displacement images and each detailed mesh's distance to the scan.
+   of the two displacement images and each detailed mesh's distance to the scan; and where each
+   marker's error comes from (fit, projection, template convention).
+5. How much landmark accuracy the remeshing needs: the hand-placed landmarks moved by random
+   offsets of known size (along the scan, a given RMS in % IOD, on all markers or only on the
+   eight outline ones), remeshed, and the displacement image correlated with the hand one.
 
 There is no reference implementation to time against: the alternative is placing the 21
 markers by hand. Each case prints one JSON line.
 
-Run: ``python benchmarks/bench_landmarks.py`` (``--quick`` for the scan and two variants only).
+Run: ``python benchmarks/bench_landmarks.py`` (``--quick``: the scan and two variants, the
+diagnosis and the found-vs-hand remesh only).
 """
 
 from __future__ import annotations
@@ -86,7 +91,51 @@ def accuracy(quick: bool) -> np.ndarray:
         for i, n in enumerate(NAMES)
     }
     _print({"case": "per_marker_mm", "variants": list(per_marker), "markers": table})
+    diagnosis(scan, truth, iod)
     return reference
+
+
+def _similarity_onto(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a`` moved by the least-squares similarity onto ``b`` (Umeyama)."""
+    ca, cb = a - a.mean(axis=0), b - b.mean(axis=0)
+    u, s, vt = np.linalg.svd(cb.T @ ca)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    scale = float(np.sum(s * np.diag(d))) / float(np.sum(ca**2))
+    return scale * ca @ (u @ d @ vt).T + b.mean(axis=0)
+
+
+def diagnosis(scan, truth: np.ndarray, iod: float) -> None:
+    """Where each marker's error comes from, in % IOD: the fit (the fitted model's landmark
+    vertex before projection), the projection onto the scan (found), the error's component along
+    the scan's normal (what projecting or a non-rigid refinement along normals can remove), and
+    the definition: the MediaPipe canonical face's landmarks (the template's convention) moved
+    by their best similarity onto the hand-placed ones, a floor no similarity fit of that
+    convention goes below."""
+    found = mesh.find_landmarks(scan.vertices, scan.faces)
+    index = ScanIndex(scan.vertices, scan.faces)
+    _, _, tri = closest_points(index, truth)
+    corners = np.asarray(scan.vertices, np.float64)[np.asarray(scan.faces)[np.asarray(tri)]]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    model_error = np.asarray(found.model_points, np.float64) - truth
+    face = data.mediapipe_face()
+    convention = _similarity_onto(np.asarray(mesh.mediapipe_landmarks(face.vertices)), truth)
+    rows = {
+        "found": np.linalg.norm(np.asarray(found.points, np.float64) - truth, axis=1),
+        "model_vertex": np.linalg.norm(model_error, axis=1),
+        "model_vertex_along_normal": np.abs(np.sum(model_error * normals, axis=1)),
+        "mediapipe_convention_floor": np.linalg.norm(convention - truth, axis=1),
+    }
+    _print(
+        {
+            "case": "per_marker_diagnosis_iod_pct",
+            **{f"{k}_mean": round(100 * float(v.mean()) / iod, 2) for k, v in rows.items()},
+            "markers": {
+                n: {k: round(100 * float(v[i]) / iod, 1) for k, v in rows.items()}
+                for i, n in enumerate(NAMES)
+            },
+        }
+    )
 
 
 def large_scan() -> None:
@@ -122,7 +171,7 @@ def batch(size: int = 16) -> None:
     )
 
 
-def remesh_agreement(found_points: np.ndarray, image_size: int = 512) -> None:
+def remesh_agreement(found_points: np.ndarray, image_size: int = 256) -> None:
     scan, marks = data.lee_perry_smith()
     index = ScanIndex(scan.vertices, scan.faces)
     results = {}
@@ -135,12 +184,13 @@ def remesh_agreement(found_points: np.ndarray, image_size: int = 512) -> None:
         sample = points[np.random.default_rng(0).choice(len(points), 4000, replace=False)]
         _, dist, _ = closest_points(index, sample)
         results[name] = (np.asarray(result.image, np.float64), dist, seconds)
-    inside = (slice(image_size // 10, -image_size // 10),) * 2
-    a, b = results["hand"][0][inside].ravel(), results["found"][0][inside].ravel()
     _print(
         {
             "case": "remesh_found_vs_hand",
-            "image_correlation": round(float(np.corrcoef(a, b)[0, 1]), 4),
+            "image_size": image_size,
+            "image_correlation": round(
+                _image_correlation(results["hand"][0], results["found"][0]), 4
+            ),
             **{
                 f"{k}_detailed_to_scan_median_mm": round(1e3 * float(np.median(r[1])), 3)
                 for k, r in results.items()
@@ -153,6 +203,59 @@ def remesh_agreement(found_points: np.ndarray, image_size: int = 512) -> None:
     )
 
 
+def _image_correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Correlation of two displacement images over their inner 80 % (the border is the outline)."""
+    n = a.shape[0]
+    inside = (slice(n // 10, -n // 10),) * 2
+    return float(np.corrcoef(a[inside].ravel(), b[inside].ravel())[0, 1])
+
+
+def remesh_sensitivity(image_size: int = 256, seeds: int = 3) -> None:
+    scan, marks = data.lee_perry_smith()
+    truth = np.asarray(mesh.landmark_points(marks, scan.vertices), np.float64)
+    iod = float(
+        np.linalg.norm(truth[NAMES.index("right_eye_outer")] - truth[NAMES.index("left_eye_outer")])
+    )
+    index = ScanIndex(scan.vertices, scan.faces)
+    _, _, tri = closest_points(index, truth)
+    corners = np.asarray(scan.vertices, np.float64)[np.asarray(scan.faces)[np.asarray(tri)]]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+
+    def image(points):
+        return np.asarray(
+            mesh.remesh(scan.vertices, scan.faces, points, image_size=image_size).image
+        )
+
+    reference = image(truth)
+    outline = [
+        NAMES.index(n)
+        for n in NAMES
+        if n.endswith(("cheek", "jaw", "temple")) or n in ("forehead", "chin")
+    ]
+    for which, ids in (("all", list(range(len(NAMES)))), ("outline", outline)):
+        for pct in (0.25, 0.5, 1.0, 2.0, 5.0, 10.0):
+            corr = []
+            for seed in range(seeds):
+                rng = np.random.default_rng(seed)
+                step = rng.normal(size=truth.shape)
+                step -= np.sum(step * normals, axis=1, keepdims=True) * normals  # along the scan
+                step *= pct / 100.0 * iod / np.sqrt(np.mean(np.sum(step[ids] ** 2, axis=1)))
+                moved = truth.copy()
+                moved[ids] += step[ids]
+                moved, _, _ = closest_points(index, moved)
+                corr.append(_image_correlation(reference, image(np.asarray(moved))))
+            _print(
+                {
+                    "case": "remesh_vs_landmark_error",
+                    "moved": which,
+                    "rms_iod_pct": pct,
+                    "image_size": image_size,
+                    "correlation": [round(c, 3) for c in corr],
+                }
+            )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the scan and two variants only")
@@ -160,6 +263,7 @@ def main() -> None:
     found = accuracy(args.quick)
     remesh_agreement(found)
     if not args.quick:
+        remesh_sensitivity()
         large_scan()
         batch()
 
