@@ -130,7 +130,7 @@ def test_every_command_refuses_its_input_as_output(files, face_folder, tmp_path,
         (["render", f["png"], "--out", f["png"]], "refusing to overwrite"),
         (["render", d / "alias.png", "--out", f["png"]], "same file"),
         (["displace", f["obj"], f["m"], "--out", f["obj"]], "refusing to overwrite"),
-        (["remesh", face / "base.obj", "--landmarks", f["params"], "--out-dir", face], "base.obj"),
+        (["remesh", face / "base.obj", "--landmarks", f["params"], "--out", face], "base.obj"),
         (["db", "build", f["m"], "--out", f["m"]], "must end in .npz"),
         (["db", "compare", f["pop"], *GROUPS, "--out", d / "pop_link.png"], "same file"),
         (["interpolate", d / "average", face, "--out", d], "average/base.obj"),
@@ -161,8 +161,8 @@ def test_every_command_refuses_its_input_as_output(files, face_folder, tmp_path,
             ["wrinkles", "extract", f["m"], "--out", d / "e.json", "--pores-out", d / "e.json"],
             "one file",
         ),
-        (["fit", f["m"], "--out", f["m"]], "must end in .json"),
-        (["fit", d / "m_convergence.png", "--out", d / "m.json"], "m_convergence.png"),
+        (["wrinkles", "fit", f["m"], "--out", f["m"]], "must end in .json"),
+        (["wrinkles", "fit", d / "m_convergence.png", "--out", d / "m.json"], "m_convergence.png"),
     ]
     for argv, fragment in cases:
         refused(d, argv, capsys, fragment)
@@ -218,7 +218,7 @@ def _reader_commands(f, tmp_path, face_folder):
         ("wrinkle parameters", f["params"], [*wr, "--params", f["params"]]),
         ("pores", pores, [*wr, "--params", f["params"], "--pores", pores]),
         ("records", meta, ["db", "build", f["m"], "--metadata", meta, "--out", out / "db.npz"]),
-        ("landmarks", landmarks, ["remesh", f["obj"], "--landmarks", landmarks, "--out-dir", out]),
+        ("landmarks", landmarks, ["remesh", f["obj"], "--landmarks", landmarks, "--out", out]),
         ("OBJ mesh", f["obj"], ["displace", f["obj"], f["m"], "--out", out / "d.obj"]),
         ("PLY mesh", ply, ["displace", ply, f["m"], "--out", out / "d.obj"]),
     ]
@@ -352,7 +352,7 @@ def test_wrong_shapes_non_finite_and_huge_values(files, tmp_path, capsys):
             "complex.npz",
         ),
         *[
-            (["remesh", f["obj"], "--landmarks", d / n, "--out-dir", out], n)
+            (["remesh", f["obj"], "--landmarks", d / n, "--out", out], n)
             for n in landmark_files
         ],
         *[([*wr, "--params", d / n], n) for n in params],
@@ -437,7 +437,7 @@ def test_a_failure_after_the_first_output_leaves_nothing(files, tmp_path, capsys
         files["stats"],
         "--out",
         tmp_path / "s.exr",
-        "--n-iter",
+        "--iters",
         "1",
     ]
     assert "No space left on device" in refused(tmp_path, argv, capsys)
@@ -558,7 +558,7 @@ def test_same_seed_same_bytes(files, tmp_path):
     )
     commands = [
         ["synthesize", f["m"], "--stats", f["stats"], "--out", "{out}/s.exr", "--seed", "3",
-         "--n-iter", "2"],
+         "--iters", "2"],
         ["analyze", f["m"], tmp_path / "n.png", "--out", "{out}/stats", "--grid", "4",
          "--scales", "2"],
         ["db", "build", f["m"], f["png"], "--out", "{out}/db.npz", "--grid", "4", "--scales",

@@ -1,0 +1,57 @@
+"""Workflows that chain: what one step writes, the next reads."""
+
+import json
+
+import numpy as np
+import pytest
+
+from jface import data, faces, io, mesh
+from jface.cli import main
+from jface.cli._faces import face_renders
+
+
+def test_landmarks_of_a_mediapipe_face_round_trip_through_io(tmp_path):
+    points = np.asarray(mesh.mediapipe_landmarks(data.mediapipe_face().vertices))
+    path = io.write_landmarks(tmp_path / "mp.json", points)
+    back = io.read_landmarks(path, names=mesh.LANDMARK_NAMES)
+    assert list(back) == list(mesh.LANDMARK_NAMES)  # template order, every name
+    np.testing.assert_array_equal(np.array([back[n] for n in mesh.LANDMARK_NAMES]), points)
+    # named rows of any count, and the shapes that name nothing are refused
+    io.write_landmarks(tmp_path / "two.json", points[:2], names=["a", "b"])
+    assert list(io.read_landmarks(tmp_path / "two.json")) == ["a", "b"]
+    with pytest.raises(ValueError, match="got shape \\(2, 3\\) and no names"):
+        io.write_landmarks(tmp_path / "x.json", points[:2])
+    with pytest.raises(ValueError, match="got shape \\(21, 2\\)"):
+        io.write_landmarks(tmp_path / "x.json", points[:, :2])
+
+
+def test_faces_train_bilinear_makes_the_model_restyle_needs(tmp_path, capsys):
+    folders = {}
+    for style, smile in (("neutral", 0.0), ("smiling", 1.0)):
+        folders[style] = tmp_path / style
+        for i, image in enumerate(face_renders(3, 12, 24, smile=smile)):
+            io.write_png(folders[style] / f"p{i:02d}.png", np.clip(image, 0, 1))
+    model_path = tmp_path / "bilinear.npz"
+    argv = ["faces", "train", "--bilinear", str(folders["neutral"]), str(folders["smiling"])]
+    assert main([*argv, "--factors", "3", "--iters", "5", "--out", str(model_path)]) == 0
+    model, _ = faces.load_model(model_path)
+    assert isinstance(model, faces.BilinearModel) and model.n_styles == 2
+    # the same fit as the library's on the faces read back, styles paired by file name
+    stacked = np.stack(
+        [np.stack([io.read_image(f, grey=True) for f in sorted(folders[s].iterdir())])
+         for s in ("neutral", "smiling")], axis=1,
+    )  # fmt: skip
+    expected = faces.fit_bilinear(stacked.astype(np.float32), 3, n_iter=5).model
+    np.testing.assert_allclose(model.stacked.mean, expected.stacked.mean, atol=1e-6)
+    capsys.readouterr()
+    out = tmp_path / "restyled"
+    restyle = ["faces", "restyle", str(folders["smiling"]), "--model", str(model_path),
+               "--image", str(folders["neutral"] / "p00.png"), "--grid", "4", "--grey",
+               "--out", str(out), "--json"]  # fmt: skip
+    assert main(restyle) == 0
+    assert json.loads(capsys.readouterr().out) == {"out": str(out)}
+    assert io.read_image(out / "restyled.png", grey=True).shape == (24, 24)
+    # style folders must pair the same people
+    (folders["smiling"] / "p00.png").rename(folders["smiling"] / "q00.png")
+    assert main([*argv, "--out", str(tmp_path / "b2.npz")]) == 2
+    assert "differ in ['p00.png', 'q00.png']" in capsys.readouterr().err
