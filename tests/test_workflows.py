@@ -55,3 +55,32 @@ def test_faces_train_bilinear_makes_the_model_restyle_needs(tmp_path, capsys):
     (folders["smiling"] / "p00.png").rename(folders["smiling"] / "q00.png")
     assert main([*argv, "--out", str(tmp_path / "b2.npz")]) == 2
     assert "differ in ['p00.png', 'q00.png']" in capsys.readouterr().err
+
+
+def test_wrinkles_render_draws_what_simulate_wrote(tmp_path, capsys):
+    sim = tmp_path / "sim"
+    argv = ["wrinkles", "simulate", "--out", str(sim), "--d", "0.05", "--steps", "3"]
+    assert main([*argv, "--seed", "3", "--size", "32"]) == 0
+    reused, again = tmp_path / "reused.exr", tmp_path / "again.exr"
+    assert main(["wrinkles", "render", "--simulation", str(sim), "--out", str(reused),
+                 "--size", "32", "--json"]) == 0  # fmt: skip
+    pores = json.loads(capsys.readouterr().out)["pores"]
+    stored, _ = io.load_arrays(sim / "wrinkles.npz", kind="WrinkleGraph")
+    assert pores == [len(stored["level0_positions"])]  # the simulation's pores, not new ones
+    # the same map as simulating again with the simulation's seed and settings
+    assert main(["wrinkles", "render", "--params", str(sim / "params.json"), "--seed", "3",
+                 "--steps", "3", "--out", str(again), "--size", "32"]) == 0  # fmt: skip
+    np.testing.assert_array_equal(io.read_map(reused), io.read_map(again))
+    assert io.read_exr(reused).metadata["simulation"] == str(sim)
+    assert main(["wrinkles", "render", "--simulation", str(sim), "--steps", "2",
+                 "--out", str(tmp_path / "x.exr")]) == 2  # fmt: skip
+    assert "--steps" in capsys.readouterr().err
+
+
+def test_wrinkles_extract_warns_when_it_finds_no_pores(tmp_path, capsys):
+    x = np.mgrid[:128, :128][1] / 128.0
+    smooth = io.write_exr(tmp_path / "smooth.exr", np.sin(2 * np.pi * x).astype(np.float32))
+    assert main(["wrinkles", "extract", str(smooth), "--out", str(tmp_path / "p.json")]) == 0
+    captured = capsys.readouterr()
+    assert "warning: no pores found on" in captured.err and "--threshold" in captured.err
+    assert io.read_json(tmp_path / "p_pores.json")["positions"] == []

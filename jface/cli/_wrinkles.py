@@ -4,11 +4,13 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
@@ -16,6 +18,7 @@ from jface.cli import _fit, deprecated_alias
 from jface.io import (
     check_output,
     exr_rows,
+    load_arrays,
     provenance,
     read_json,
     read_map,
@@ -28,8 +31,12 @@ from jface.io import (
 )
 from jface.render import shade
 from jface.wrinkles import (
+    PoreGraph,
+    Pores,
+    Simulated,
     WrinkleParams,
     blend_with_scan,
+    draw_simulated,
     extract_orientation,
     find_pores,
     load_params,
@@ -37,7 +44,6 @@ from jface.wrinkles import (
     radius_map_from_mesh,
     save_params,
     simulate_levels,
-    synthesize,
     synthesize_bands,
 )
 
@@ -45,6 +51,10 @@ from jface.wrinkles import (
 LEVEL_S, LEVEL_SCALE = (0.05, 0.15, 0.3, 0.5), (0.6, 0.35, 0.2, 0.12)
 _OVERRIDES = ("d", "theta", "s", "dist", "cont", "sim", "cross", "deposit", "decay")
 _UNITS = {"d": ", unit-square units", "theta": ", radians"}
+_FIELDS = {
+    name: [f.name for f in dataclasses.fields(kind) if f.name != "periodic"]
+    for name, kind in (("pores", Pores), ("graph", PoreGraph))
+}
 BANDED_ABOVE = 4096  #: maps with more rows are drawn and written band by band (bounded memory)
 _PREVIEW = 2048  # side of the PNG / mesh preview of a banded map
 _RADIUS_SIDE = 1024  # radius maps from a mesh's UV stretch are smooth: this resolution suffices
@@ -83,7 +93,15 @@ def register(subparsers) -> None:
         help="simulate and draw a multi-level micro-wrinkle displacement map (EXR + shaded PNG), "
         "optionally blended with a scan's displacement and applied to a mesh",
     )
-    ren.add_argument("--params", required=True, help="JSON file of WrinkleParams levels")
+    ren.add_argument(
+        "--params", help="JSON file of WrinkleParams levels (required without --simulation)"
+    )
+    ren.add_argument(
+        "--simulation",
+        metavar="DIR",
+        help="folder written by 'jface wrinkles simulate': draw its levels, pores and weights "
+        "(with its seed) instead of simulating again",
+    )
     ren.add_argument("--out", required=True, help="output EXR (PNG and mesh beside it)")
     ren.add_argument("--size", type=int, default=1024, help="map side in pixels (16 to 16384; "
                      f"above {BANDED_ABOVE} drawn and written band by band)")  # fmt: skip
@@ -201,6 +219,11 @@ def _simulate(args: argparse.Namespace) -> dict:
         arrays[f"level{i}_edge_nodes"] = np.asarray(graph.edge_nodes)[:e]
         arrays[f"level{i}_edge_delta"] = np.asarray(graph.edge_delta)[:e]
         arrays[f"level{i}_weights"] = np.asarray(weights)[:e]
+        # the whole graph, padding included, so that 'render --simulation' can draw it
+        arrays[f"level{i}_weights_all"] = np.asarray(weights)
+        for prefix, item in (("pores", pores), ("graph", graph)):
+            for field in _FIELDS[prefix]:
+                arrays[f"level{i}_{prefix}_{field}"] = np.asarray(getattr(item, field))
     meta = provenance(
         seed=args.seed,
         levels=[p.to_dict() for p in levels],
@@ -226,7 +249,19 @@ def _render(args: argparse.Namespace) -> dict:
     check_output(out.with_suffix(".png"), (".png",))
     if args.mesh:
         check_output(out.with_suffix(".obj"), (".obj",))
-    levels = load_params(args.params)
+    if (args.params is None) == (args.simulation is None):
+        raise ValueError("give --params (simulate here) or --simulation (reuse a simulation)")
+    if args.simulation:
+        clash = [f"--{n}" for n in ("pores", "mesh", "steps", "samples") if getattr(args, n)]
+        if clash or args.size > BANDED_ABOVE:
+            raise ValueError(
+                f"--simulation draws a finished simulation: {clash or '--size above 4096'} "
+                "does not go with it"
+            )
+        levels, simulated, sim_meta = _read_simulation(args.simulation)
+        args.seed, args.periodic = int(sim_meta["seed"]), bool(sim_meta["periodic"])
+    else:
+        levels = load_params(args.params)
     base = read_map(args.base) if args.base else None
     if base is not None and base.shape != (args.size, args.size):
         raise ValueError(f"--base is {base.shape}, expected ({args.size}, {args.size}) (--size)")
@@ -248,11 +283,15 @@ def _render(args: argparse.Namespace) -> dict:
                n_steps=args.steps, n_samples=args.samples, progress=True)  # fmt: skip
     key = jax.random.key(args.seed)
     shape = (args.size, args.size)
+    if args.simulation:
+        meta["simulation"] = str(args.simulation)
     if args.size > BANDED_ABOVE:
         counts, preview = _render_bands(key, levels, shape, base, out, meta, run)
     else:
-        with tqdm(total=1, desc="simulate + draw", leave=False):
-            syn = synthesize(key, levels, shape, **run)
+        if not args.simulation:  # the simulation shows its own progress
+            simulated = simulate_levels(key, levels, **run)
+        print(f"drawing {len(levels)} level(s) at {args.size}²…", file=sys.stderr)
+        syn = draw_simulated(key, levels, simulated, shape)
         disp = syn.displacement if base is None else blend_with_scan(base, syn.displacement)
         preview = np.asarray(disp)
         write_exr(out, preview, metadata=meta)
@@ -273,6 +312,29 @@ def _render(args: argparse.Namespace) -> dict:
         "size": args.size,
         "seconds": time.perf_counter() - start,
     }
+
+
+def _read_simulation(folder: str):
+    """Levels, simulated graphs and weights, and the provenance of a ``wrinkles simulate``
+    folder."""
+    arrays, meta = load_arrays(Path(folder) / "wrinkles.npz", kind="WrinkleGraph")
+    levels = load_params(Path(folder) / "params.json")
+    simulated = []
+    periodic = bool(meta["periodic"])
+    for i in range(len(levels)):
+        parts = {}
+        for prefix, kind in (("pores", Pores), ("graph", PoreGraph)):
+            fields = {f: arrays.get(f"level{i}_{prefix}_{f}") for f in _FIELDS[prefix]}
+            if any(v is None for v in fields.values()):
+                raise ValueError(
+                    f"{folder}/wrinkles.npz holds no drawable level {i} (written by an older "
+                    "jface?): simulate again"
+                )
+            parts[prefix] = kind(**{f: jnp.asarray(v) for f, v in fields.items()},
+                                 periodic=periodic)  # fmt: skip
+        weights = jnp.asarray(arrays[f"level{i}_weights_all"])
+        simulated.append(Simulated(parts["pores"], parts["graph"], weights))
+    return levels, simulated, meta
 
 
 def _render_bands(key, levels, shape, base, out, meta, run):
