@@ -61,6 +61,7 @@ def test_wrinkles_render_draws_what_simulate_wrote(tmp_path, capsys):
     sim = tmp_path / "sim"
     argv = ["wrinkles", "simulate", "--out", str(sim), "--d", "0.05", "--steps", "3"]
     assert main([*argv, "--seed", "3", "--size", "32"]) == 0
+    capsys.readouterr()
     reused, again = tmp_path / "reused.exr", tmp_path / "again.exr"
     assert main(["wrinkles", "render", "--simulation", str(sim), "--out", str(reused),
                  "--size", "32", "--json"]) == 0  # fmt: skip
@@ -78,9 +79,42 @@ def test_wrinkles_render_draws_what_simulate_wrote(tmp_path, capsys):
 
 
 def test_wrinkles_extract_warns_when_it_finds_no_pores(tmp_path, capsys):
-    x = np.mgrid[:128, :128][1] / 128.0
-    smooth = io.write_exr(tmp_path / "smooth.exr", np.sin(2 * np.pi * x).astype(np.float32))
+    smooth = io.write_exr(tmp_path / "smooth.exr", np.zeros((128, 128), np.float32))
     assert main(["wrinkles", "extract", str(smooth), "--out", str(tmp_path / "p.json")]) == 0
     captured = capsys.readouterr()
     assert "warning: no pores found on" in captured.err and "--threshold" in captured.err
     assert io.read_json(tmp_path / "p_pores.json")["positions"] == []
+
+
+def test_small_faces_get_a_grid_that_fits_and_figures_of_a_usable_size(tmp_path, capsys):
+    from skimage.data import lfw_subset
+
+    lfw = tmp_path / "lfw"
+    for i, face in enumerate(lfw_subset()[:24]):  # 25×25 px crops
+        io.write_png(lfw / f"f{i:02d}.png", face)
+    out = tmp_path / "synth"
+    argv = ["faces", "synth", str(lfw), "--grey", "--n", "2", "--out", str(out)]
+    assert main(argv) == 0  # the default 9×9 grid does not fit 25 px: the finest that does
+    assert "--grid 8: the finest grid that fits 25×25 px faces" in capsys.readouterr().out
+    assert io.read_image(out / "face_000.png").shape[:2] == (25, 25)
+    # two 25 px faces side by side with a 2 px gap: 52 px, repeated 10× to reach 512 px
+    figure = io.read_image(out / "faces.png", grey=True)
+    assert figure.shape == (250, 520)
+    first = io.read_image(out / "face_000.png", grey=True)
+    np.testing.assert_array_equal(figure[::10, ::10][:, :25], first)  # pixels repeated, not blurred
+    model = tmp_path / "fa.npz"
+    assert main(["faces", "train", str(lfw), "--factors", "2", "--iters", "3", "--out",
+                 str(model)]) == 0  # fmt: skip
+    grids = {}
+    for upscale in (None, "3"):
+        sample = tmp_path / f"sample{upscale}"
+        extra = [] if upscale is None else ["--upscale", upscale]
+        assert main(["faces", "sample", str(model), "--n", "4", "--out", str(sample), *extra]) == 0
+        grids[upscale] = io.read_image(sample / "grid.png", grey=True)
+    # a 2×2 grid of 25 px faces with 1 px between: 53 px, by default repeated 10× (≥ 512 px)
+    assert grids[None].shape == (530, 530) and grids["3"].shape == (159, 159)
+    np.testing.assert_array_equal(grids[None][::10, ::10], grids["3"][::3, ::3])
+    assert (
+        main(["faces", "sample", str(model), "--out", str(tmp_path / "s0"), "--upscale", "0"]) == 2
+    )
+    assert "--upscale must be at least 1, got 0" in capsys.readouterr().err

@@ -68,6 +68,13 @@ def register(subparsers) -> None:
     sample.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sample.add_argument("--noise", action="store_true", help="add the per-pixel noise term")
     sample.add_argument("--out", required=True, help="output folder (PNGs and grid.png)")
+    sample.add_argument(
+        "--upscale",
+        type=int,
+        default=None,
+        help="pixel-repeat factor of grid.png (default: the smallest that makes it "
+        f"{quilting.FIGURE_SIDE} pixels or more across; the sample PNGs keep their size)",
+    )
     sample.set_defaults(run=_sample, prose="wrote {n} samples and {grid}")
 
     align = sub.add_parser(
@@ -182,15 +189,16 @@ def grid(images: np.ndarray, pad: int = 1) -> np.ndarray:
     return out
 
 
-def _write_samples(out: Path, images: np.ndarray, meta: dict, *, scale: int = 1) -> Path:
+def _write_samples(out: Path, images: np.ndarray, meta: dict, *, upscale: int | None) -> Path:
     images = np.clip(images, 0.0, 1.0)
     for i, img in enumerate(images):
         write_png(out / f"sample_{i:03d}.png", img, metadata=meta)
-    big = np.kron(grid(images), np.ones((scale, scale), np.float32))
-    return write_png(out / "grid.png", big, metadata=meta)
+    return write_png(out / "grid.png", quilting.enlarge(grid(images), upscale), metadata=meta)
 
 
 def _sample(args: argparse.Namespace) -> dict:
+    if args.upscale is not None and args.upscale < 1:
+        raise ValueError(f"--upscale must be at least 1, got {args.upscale}")
     model, _ = faces.load_model(args.model)
     if isinstance(model, faces.BilinearModel):
         model = faces.style(model, 0)
@@ -198,7 +206,7 @@ def _sample(args: argparse.Namespace) -> dict:
         raise ValueError(f"{args.model} describes vectors of shape {model.shape}, not images")
     images = np.asarray(faces.sample(jax.random.key(args.seed), model, args.n, noise=args.noise))
     meta = provenance(seed=args.seed, model=str(args.model), n=args.n, noise=bool(args.noise))
-    path = _write_samples(Path(args.out), images, meta)
+    path = _write_samples(Path(args.out), images, meta, upscale=args.upscale)
     return {"out": args.out, "n": args.n, "grid": str(path)}
 
 
@@ -234,7 +242,7 @@ def demo(out_dir: Path, seed: int) -> None:
     faces.save_model(out / "face_model.npz", result.model, meta)
     write_png(out / "training_grid.png", np.kron(grid(np.clip(data[:16], 0, 1)), np.ones((4, 4))))
     images = np.asarray(faces.sample(jax.random.key(seed), result.model, 16))
-    grid_path = _write_samples(out / "samples", images, meta, scale=4)
+    grid_path = _write_samples(out / "samples", images, meta, upscale=4)
     ll = np.asarray(result.log_likelihood)
     print(
         f"faces: 8-factor analyser fitted to 120 renders (log-likelihood {ll[0]:.0f} → "

@@ -22,12 +22,27 @@ from jface import faces, io
 from jface.faces import _editing, _patches, _quilting
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+#: Default width of a figure of faces, in pixels: small aligned faces (25 px) are enlarged to it.
+FIGURE_SIDE = 512
 
 
 def _library_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("images", nargs="+", help="aligned training faces: image files or folders")
     p.add_argument("--grey", action="store_true", help="read the faces as greyscale")
-    p.add_argument("--grid", type=int, default=9, help="patches per side (default 9)")
+    p.add_argument(
+        "--grid",
+        type=int,
+        default=None,
+        help=f"patches per side (default: {_patches.GRID}, or the finest grid below it that "
+        "fits the faces' size)",
+    )
+    p.add_argument(
+        "--upscale",
+        type=int,
+        default=None,
+        help="pixel-repeat factor of the figures (default: the smallest that makes them "
+        f"{FIGURE_SIDE} pixels or more across; the face PNGs keep their size)",
+    )
     p.add_argument("--patch", type=int, default=None, help="patch size (default: quarter overlap)")
     p.add_argument("--translations", type=int, default=1, help="largest patch shift, pixels")
     p.add_argument(
@@ -146,9 +161,38 @@ def read_faces(names: list[str], grey: bool) -> tuple[np.ndarray, list[Path]]:
     return np.stack(images).astype(np.float32), files
 
 
+def enlarge(figure: np.ndarray, upscale: int | None) -> np.ndarray:
+    """``figure`` with every pixel repeated ``upscale`` times along both axes (default: the
+    smallest factor that makes it :data:`FIGURE_SIDE` pixels or more across)."""
+    if upscale is None:
+        upscale = -(-FIGURE_SIDE // max(figure.shape[:2]))
+    return np.repeat(np.repeat(figure, upscale, axis=0), upscale, axis=1)
+
+
+def _grid(args: argparse.Namespace, shape: tuple[int, int]) -> int:
+    """``--grid``, or the finest grid up to the default that fits faces of ``shape``."""
+    if args.grid is not None:
+        return args.grid
+    for grid in range(_patches.GRID, 1, -1):
+        try:
+            _patches.make_geometry(shape, grid, args.patch)
+        except ValueError:
+            continue
+        if grid != _patches.GRID:
+            print(f"--grid {grid}: the finest grid that fits {shape[1]}×{shape[0]} px faces")
+        return grid
+    raise ValueError(f"no patch grid fits {shape[1]}×{shape[0]} px faces; give --grid and --patch")
+
+
 def _library(args: argparse.Namespace, images: np.ndarray) -> faces.PatchLibrary:
+    if args.upscale is not None and args.upscale < 1:  # refused before the work, not after
+        raise ValueError(f"--upscale must be at least 1, got {args.upscale}")
     library = faces.build_library(
-        images, args.grid, patch=args.patch, translations=args.translations, angles=args.angles
+        images,
+        _grid(args, images.shape[1:3]),
+        patch=args.patch,
+        translations=args.translations,
+        angles=args.angles,
     )
     print(_patches.describe_library(library))
     return library
@@ -280,10 +324,18 @@ def _write_samples(args, images, library, files, result, targets, settings) -> d
     smaps = np.asarray(faces.source_map(result, library))
     for i in range(args.n):
         io.write_png(out / f"face_{i:03d}.png", np.asarray(result.image[i]), metadata=meta)
-    io.write_png(out / "faces.png", montage(np.asarray(result.image)), metadata=meta)
-    io.write_png(out / "targets.png", montage(targets), metadata=meta)
-    io.write_png(out / "quilted.png", montage(np.asarray(result.quilted)), metadata=meta)
-    io.write_png(out / "sources.png", montage(colour_sources(smaps)), metadata=meta)
+    io.write_png(
+        out / "faces.png", enlarge(montage(np.asarray(result.image)), args.upscale), metadata=meta
+    )
+    io.write_png(out / "targets.png", enlarge(montage(targets), args.upscale), metadata=meta)
+    io.write_png(
+        out / "quilted.png",
+        enlarge(montage(np.asarray(result.quilted)), args.upscale),
+        metadata=meta,
+    )
+    io.write_png(
+        out / "sources.png", enlarge(montage(colour_sources(smaps)), args.upscale), metadata=meta
+    )
     nearest = [faces.nearest_training(result.image[i], images)[1] for i in range(args.n)]
     summary = {
         "out": str(out),
@@ -352,7 +404,11 @@ def _inpaint(args: argparse.Namespace) -> dict:
     for i in range(args.n):
         io.write_png(out / f"inpainted_{i:03d}.png", np.asarray(result.image[i]), metadata=meta)
     panel = np.concatenate([face[None], holed[None], target[None], np.asarray(result.image)])
-    io.write_png(out / "inpainting.png", montage(panel, columns=len(panel)), metadata=meta)
+    io.write_png(
+        out / "inpainting.png",
+        enlarge(montage(panel, columns=len(panel)), args.upscale),
+        metadata=meta,
+    )
     return {"out": str(out), "hypotheses": args.n, "training": len(files)}
 
 
@@ -375,7 +431,7 @@ def _edit(args: argparse.Namespace) -> dict:
     meta = io.provenance(seed=args.seed, image=Path(args.image).name, lam=args.lam)
     io.write_png(out / "edited.png", np.asarray(result.image), metadata=meta)
     panel = np.stack([face, painted, np.asarray(result.image)])
-    io.write_png(out / "edit.png", montage(panel, columns=3), metadata=meta)
+    io.write_png(out / "edit.png", enlarge(montage(panel, columns=3), args.upscale), metadata=meta)
     return {"out": str(out)}
 
 
@@ -399,7 +455,9 @@ def _restyle(args: argparse.Namespace) -> dict:
     meta = io.provenance(seed=args.seed, image=Path(args.image).name, model=Path(args.model).name)
     io.write_png(out / "restyled.png", np.asarray(result.image), metadata=meta)
     panel = np.stack([face, np.asarray(prediction), np.asarray(result.image)])
-    io.write_png(out / "restyle.png", montage(panel, columns=3), metadata=meta)
+    io.write_png(
+        out / "restyle.png", enlarge(montage(panel, columns=3), args.upscale), metadata=meta
+    )
     return {"out": str(out)}
 
 
