@@ -351,10 +351,7 @@ def test_wrong_shapes_non_finite_and_huge_values(files, tmp_path, capsys):
             ["synthesize", f["m"], "--stats", d / "complex.npz", "--out", out / "s.exr"],
             "complex.npz",
         ),
-        *[
-            (["remesh", f["obj"], "--landmarks", d / n, "--out", out], n)
-            for n in landmark_files
-        ],
+        *[(["remesh", f["obj"], "--landmarks", d / n, "--out", out], n) for n in landmark_files],
         *[([*wr, "--params", d / n], n) for n in params],
         *[([*wr, "--params", f["params"], "--pores", d / n], n) for n in [*pores, "pnan.json"]],
         *[
