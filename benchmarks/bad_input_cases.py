@@ -349,7 +349,7 @@ def analyze_rerun_other_grid(d):
     out = d / "stats"
     run_cli(["analyze", str(m), "--out", str(out), "--grid", "8", "--scales", "3"])
     second = run_cli(["analyze", str(m), "--out", str(out), "--grid", "4", "--scales", "3"])
-    grid = detail.load_stats(out / "m.stats.npz")[0].grid
+    grid = detail.load_stats(out / "m.stats.npz").stats.grid
     return {"second_run": second, "grid_in_file": grid, "ok": grid == 4}
 
 
@@ -361,7 +361,7 @@ def analyze_rerun_after_edit(d):
     edited = noise() * 3
     io.write_exr(m, edited)
     second = run_cli(["analyze", str(m), "--out", str(out), "--grid", "8", "--scales", "3"])
-    got = np.asarray(detail.load_stats(out / "m.stats.npz")[0].std)
+    got = np.asarray(detail.load_stats(out / "m.stats.npz").stats.std)
     ok = bool(np.allclose(got, np.asarray(detail.analyze(edited, grid=8, n_scales=3).std)))
     return {"second_run": second, "stats_current": ok, "ok": ok}
 

@@ -104,7 +104,8 @@ def test_remesh_folders_are_maps_named_by_folder(tmp_path, capsys):
     small = ["--grid", "4", "--scales", "2"]
     assert main(["analyze", *folders, "--out", str(tmp_path / "stats"), *small]) == 0
     for name, folder in zip(("alice", "bob"), folders, strict=True):
-        stats, meta = detail.load_stats(tmp_path / "stats" / f"{name}.stats.npz")
+        saved = detail.load_stats(tmp_path / "stats" / f"{name}.stats.npz")
+        stats, meta = saved.stats, saved.metadata
         expected = detail.analyze(io.read_map(f"{folder}/displacement.exr"), grid=4, n_scales=2)
         np.testing.assert_allclose(stats.std, expected.std, rtol=1e-6)
         assert meta["source"] == f"{name}/displacement.exr"

@@ -460,10 +460,10 @@ def test_analyze_reruns_recompute_what_changed(tmp_path, capsys):
     edited = io.write_exr(m, noise() * 3)
     assert "analyzed 1 map(s), kept 1" in run("--grid", "4", "--scales", "2")
     np.testing.assert_allclose(
-        detail.load_stats(out / "m.stats.npz")[0].std, stats_of(edited, grid=4, n_scales=2)
+        detail.load_stats(out / "m.stats.npz").stats.std, stats_of(edited, grid=4, n_scales=2)
     )
     assert "analyzed 2 map(s), kept 0" in run("--grid", "8", "--scales", "2")
-    assert detail.load_stats(out / "n.stats.npz")[0].grid == 8
+    assert detail.load_stats(out / "n.stats.npz").stats.grid == 8
     (out / "n.stats.png").unlink()  # a lost picture is made again
     assert "analyzed 1 map(s), kept 1" in run("--grid", "8", "--scales", "2")
 

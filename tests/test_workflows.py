@@ -34,7 +34,7 @@ def test_faces_train_bilinear_makes_the_model_restyle_needs(tmp_path, capsys):
     model_path = tmp_path / "bilinear.npz"
     argv = ["faces", "train", "--bilinear", str(folders["neutral"]), str(folders["smiling"])]
     assert main([*argv, "--factors", "3", "--iters", "5", "--out", str(model_path)]) == 0
-    model, _ = faces.load_model(model_path)
+    model = faces.load_model(model_path).model
     assert isinstance(model, faces.BilinearModel) and model.n_styles == 2
     # the same fit as the library's on the faces read back, styles paired by file name
     stacked = np.stack(

@@ -166,7 +166,7 @@ def _target(
     if args.group and not args.db:
         raise ValueError("--group needs --db")
     if args.stats:
-        return detail.load_stats(args.stats)[0].reduced(), Path(args.stats).name
+        return detail.load_stats(args.stats).stats.reduced(), Path(args.stats).name
     if args.db:
         if not args.group:
             raise ValueError("--db needs --group FIELD=VALUE[,...] naming the target group")

@@ -197,7 +197,7 @@ def _analyze(args: argparse.Namespace) -> dict:
         key = io.content_key([name], {"kind": "DetailStats", **settings})
         if target.exists() and not args.overwrite:
             with io.own_outputs():
-                _, meta = detail.load_stats(target)
+                meta = detail.load_stats(target).metadata
             if meta.get("source") != source:
                 raise ValueError(
                     f"{target} holds statistics of {meta.get('source')!r}, not of {name}; "
@@ -220,7 +220,8 @@ def _synthesize(args: argparse.Namespace) -> dict:
     out = io.check_output(args.out, (".exr",))
     io.check_output(out.with_suffix(".png"), (".png",))
     start = io.read_map(args.start)
-    target, stats_meta = detail.load_stats(args.stats)
+    saved = detail.load_stats(args.stats)
+    target, stats_meta = saved.stats, saved.metadata
     boundary = args.boundary or stats_meta.get("boundary", "circular")
     method = args.method or ("histogram" if target.full else "std")
     result = detail.synthesize(

@@ -199,7 +199,7 @@ def _write_samples(out: Path, images: np.ndarray, meta: dict, *, upscale: int | 
 def _sample(args: argparse.Namespace) -> dict:
     if args.upscale is not None and args.upscale < 1:
         raise ValueError(f"--upscale must be at least 1, got {args.upscale}")
-    model, _ = faces.load_model(args.model)
+    model = faces.load_model(args.model).model
     if isinstance(model, faces.BilinearModel):
         model = faces.style(model, 0)
     if len(model.shape) != 2:

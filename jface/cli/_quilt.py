@@ -295,8 +295,7 @@ def sample_faces(args: argparse.Namespace) -> tuple[np.ndarray, dict]:
 def _load_model(path: str):
     if not hasattr(faces, "load_model"):
         raise ValueError("--model needs the factor models of jface.faces, not in this copy")
-    model, _ = faces.load_model(path)
-    return model
+    return faces.load_model(path).model
 
 
 def _sample_from_model(args, images, library, files) -> tuple[np.ndarray, dict]:

@@ -42,6 +42,7 @@ from jface.detail._meshes import (
 from jface.detail._population import Population
 from jface.detail._stats import (
     DetailStats,
+    SavedStats,
     analyze,
     analyze_like,
     load_stats,
@@ -62,6 +63,7 @@ __all__ = [
     "GroupComparison",
     "Interpolation",
     "Population",
+    "SavedStats",
     "add_detail",
     "age",
     "analyze",
