@@ -41,6 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "found by fitting the built-in face model (as jface landmarks does)",
     )
     rem.add_argument("--out", required=True, help="output folder")
+    rem.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seeds the surface samples of the landmark search (without --landmarks)",
+    )
     deprecated_alias(rem, "--out-dir", "--out")
     rem.add_argument("--image-size", type=int, default=1024, help="displacement image side, pixels")
     rem.add_argument("--linear", type=int, default=2, help="projected linear subdivisions")
@@ -150,7 +156,7 @@ def _remesh(args: argparse.Namespace) -> dict:
     scan = io.read_mesh(args.scan)
     if args.landmarks is None:
         start = time.perf_counter()
-        found = mesh.find_landmarks(scan.vertices, scan.faces)
+        found = mesh.find_landmarks(scan.vertices, scan.faces, key=jax.random.key(args.seed))
         marks = found.as_dict()
         print(
             f"no --landmarks: found the 21 landmarks by fitting the face model in "
