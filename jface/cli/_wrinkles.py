@@ -140,7 +140,9 @@ def register(subparsers) -> None:
     ext.add_argument(
         "--threshold", type=float, default=1.0, help="pore depth threshold (high-pass std units)"
     )
-    ext.add_argument("--d", type=float, default=0.01, help="α_d of the written level")
+    ext.add_argument(
+        "--d", type=float, default=0.01, help="α_d of the written level, unit-square units"
+    )
     ext.set_defaults(
         run=_extract,
         prose="wrinkles extract: {rows}×{columns} orientations, {pores} pores in {seconds:.1f} s "
