@@ -17,18 +17,23 @@ def _options(parser):
             yield action
 
 
-def test_every_option_has_help_showing_its_default():
+def test_every_option_has_help_showing_its_default_or_that_it_is_required():
     leaves = list(_leaves(build_parser()))
     assert len(leaves) == 24  # every command, sub-commands and the hidden `fit` included
     missing = [
         f"{leaf.prog} {action.option_strings[0]}"
         for leaf in leaves
         for action in _options(leaf)
-        if action.help != argparse.SUPPRESS and "default" not in (action.help or "")
+        if action.help != argparse.SUPPRESS
+        and not ("default" in (action.help or "") or (action.help or "").endswith("(required)"))
     ]
     assert missing == []
     for leaf in leaves:  # the help renders (a stray % in a help text would raise here)
         assert "--json" in leaf.format_help()
+    remesh = next(leaf for leaf in leaves if leaf.prog == "jface remesh")
+    assert [a.help for a in remesh._actions if "--out" in a.option_strings] == [
+        "output folder (required)"
+    ]
 
 
 @pytest.mark.parametrize(

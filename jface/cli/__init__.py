@@ -153,9 +153,14 @@ def _leaves(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser
 
 
 def _show_defaults(parser: argparse.ArgumentParser) -> None:
-    """Append the default to an option's help where the help does not state it already."""
+    """Append the default to an option's help where the help does not state it already, or
+    say that the option is required."""
+    required = [*getattr(parser, "required_either_spelling", [])]
     for action in parser._actions:
         if not action.option_strings or action.help in (None, argparse.SUPPRESS):
+            continue
+        if action.required or action in required:
+            action.help += " (required)"
             continue
         if "default" in action.help or action.default is argparse.SUPPRESS:
             continue
