@@ -166,7 +166,7 @@ def synthesize_two_outputs_on_one_name(d):
     m = io.write_exr(d / "s.exr", noise())
     stats = d / "st.npz"
     detail.save_stats(stats, detail.analyze(noise(), grid=8, n_scales=3))
-    argv = ["synthesize", m, "--stats", stats, "--out", d / "s.png", "--n-iter", "1"]
+    argv = ["synthesize", m, "--stats", stats, "--out", d / "s.png", "--iters", "1"]
     return refusal(d, argv, [m, stats], [d / "s.png"])
 
 
@@ -218,7 +218,7 @@ def add_detail_out_is_face_folder(d):
     face = _face_folder(d)
     stats = d / "st.npz"
     detail.save_stats(stats, detail.analyze(noise(64), grid=4, n_scales=2))
-    argv = ["add-detail", face, "--stats", stats, "--out", face, "--n-iter", "1"]
+    argv = ["add-detail", face, "--stats", stats, "--out", face, "--iters", "1"]
     return refusal(d, argv, [face, stats])
 
 
@@ -290,7 +290,7 @@ def integer_statistics_file(d):
     arrays = {"std": (np.asarray(arrays["std"]) * 1000).astype(np.int64)}
     io.save_arrays(d / "int.npz", arrays, io.provenance(**meta), kind="DetailStats")
     m = io.write_exr(d / "m.exr", noise())
-    argv = ["synthesize", m, "--stats", d / "int.npz", "--out", d / "o.exr", "--n-iter", "1"]
+    argv = ["synthesize", m, "--stats", d / "int.npz", "--out", d / "o.exr", "--iters", "1"]
     return refusal(d, argv, [m, d / "int.npz"], [d / "o.exr"], names=["int.npz"])
 
 
@@ -349,7 +349,7 @@ def analyze_rerun_other_grid(d):
     out = d / "stats"
     run_cli(["analyze", str(m), "--out", str(out), "--grid", "8", "--scales", "3"])
     second = run_cli(["analyze", str(m), "--out", str(out), "--grid", "4", "--scales", "3"])
-    grid = detail.load_stats(out / "m.stats.npz")[0].grid
+    grid = detail.load_stats(out / "m.stats.npz").stats.grid
     return {"second_run": second, "grid_in_file": grid, "ok": grid == 4}
 
 
@@ -361,7 +361,7 @@ def analyze_rerun_after_edit(d):
     edited = noise() * 3
     io.write_exr(m, edited)
     second = run_cli(["analyze", str(m), "--out", str(out), "--grid", "8", "--scales", "3"])
-    got = np.asarray(detail.load_stats(out / "m.stats.npz")[0].std)
+    got = np.asarray(detail.load_stats(out / "m.stats.npz").stats.std)
     ok = bool(np.allclose(got, np.asarray(detail.analyze(edited, grid=8, n_scales=3).std)))
     return {"second_run": second, "stats_current": ok, "ok": ok}
 
@@ -454,7 +454,7 @@ def _corrupt_npz(d: Path) -> Path:
 def corrupt_npz_deflate(d):
     stats = _corrupt_npz(d)
     m = io.write_exr(d / "m.exr", noise())
-    argv = ["synthesize", m, "--stats", stats, "--out", d / "o.exr", "--n-iter", "1"]
+    argv = ["synthesize", m, "--stats", stats, "--out", d / "o.exr", "--iters", "1"]
     return refusal(d, argv, [m, stats], [d / "o.exr"], names=["st.npz"])
 
 
@@ -490,7 +490,7 @@ def _scan(d: Path) -> Path:
 
 def _remesh_refusal(d: Path, landmarks: Path) -> dict:
     scan = _scan(d)
-    argv = ["remesh", scan, "--landmarks", landmarks, "--out-dir", d / "out", "--image-size", "32"]
+    argv = ["remesh", scan, "--landmarks", landmarks, "--out", d / "out", "--image-size", "32"]
     return refusal(d, argv, [scan, landmarks], [d / "out"], names=[landmarks.name])
 
 
@@ -569,7 +569,7 @@ def cli_number_1e400(d):
 @case("tracebacks")
 def cli_float_1e400(d):
     m = io.write_exr(d / "m.exr", noise(64))
-    argv = ["fit", m, "--out", d / "o.json", "--d-range", "0.02", "1e400"]
+    argv = ["wrinkles", "fit", m, "--out", d / "o.json", "--d-range", "0.02", "1e400"]
     return refusal(d, argv, [m], [d / "o.json"])
 
 

@@ -29,7 +29,7 @@ def main() -> None:
     parser.add_argument("--out", default="fig9")
     parser.add_argument("--size", type=int, default=512, help="displacement image size")
     parser.add_argument("--levels", type=int, default=3, help="coarse levels kept (1-5)")
-    parser.add_argument("--n-iter", type=int, default=24)
+    parser.add_argument("--iters", type=int, default=24, help="synthesis iterations")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--ict", help="the full ICT-FaceKit face area (ict_face_area.npz); default: jface's subset"
@@ -39,16 +39,16 @@ def main() -> None:
     (young, old), records = population(1, 1, image_size=args.size, seed=args.seed, ict=args.ict)
     key_age, key_young = jax.random.split(jax.random.key(args.seed))
     stats = {name: detail.analyze(f.image) for name, f in (("young", young), ("old", old))}
-    aged = detail.age(key_age, young, old, stats["old"], n_coarse=args.levels, n_iter=args.n_iter)
+    aged = detail.age(key_age, young, old, stats["old"], n_coarse=args.levels, n_iter=args.iters)
     young_again = detail.age(
-        key_young, old, young, stats["young"], n_coarse=args.levels, n_iter=args.n_iter
+        key_young, old, young, stats["young"], n_coarse=args.levels, n_iter=args.iters
     )
     meta = io.provenance(
         seed=args.seed,
         experiment="Golovinskiy 2006 Fig. 9-10, §4",
         faces=records,
         levels=args.levels,
-        n_iter=args.n_iter,
+        n_iter=args.iters,
         size=args.size,
     )
 
@@ -69,7 +69,7 @@ def main() -> None:
 
     # §4 / Fig. 10: the young image after the coarse change, given the old detail four ways.
     results = detail.method_results(
-        key_age, young.image, old.image, stats["old"], n_iter=args.n_iter
+        key_age, young.image, old.image, stats["old"], n_iter=args.iters
     )
     scores = detail.method_scores(results, young.image, stats["old"])
     images = [young.image, old.image, *results.values()]

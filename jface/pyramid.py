@@ -143,7 +143,7 @@ def _build(image: Array, n_scales: int, n_orientations: int, boundary: str) -> P
     pad = padding(shape, n_scales, boundary)
     padded = pad_image(image, pad)
     filters = make_filters(padded.shape[-2:], n_scales, n_orientations, np.dtype(image.dtype).name)
-    highpass, bands, lowpass = _analyse(filters, padded)
+    highpass, bands, lowpass = _analyze(filters, padded)
     return Pyramid(highpass, bands, lowpass, image_shape=tuple(shape), pad=pad)
 
 
@@ -202,8 +202,8 @@ def _raised_cosine(log_radius: np.ndarray, position: float) -> tuple[np.ndarray,
 def make_filters(shape: tuple[int, int], n_scales: int, n_orientations: int, dtype: str) -> Filters:
     """The frequency masks for images of ``shape`` (computed once per arguments, cached).
 
-    For algorithms that iterate in the frequency domain (see :func:`analyse_spectrum` and
-    :func:`synthesise_spectrum`); :func:`build` and :func:`collapse` call it themselves.
+    For algorithms that iterate in the frequency domain (see :func:`analyze_spectrum` and
+    :func:`synthesize_spectrum`); :func:`build` and :func:`collapse` call it themselves.
     """
     h, w = shape
     order = n_orientations - 1
@@ -263,12 +263,12 @@ def _times(spectrum: Array, mask: Array) -> Array:
     return spectrum * mask.astype(spectrum.dtype)
 
 
-def _analyse(filters: Filters, image: Array) -> tuple[Array, tuple[Array, ...], Array]:
+def _analyze(filters: Filters, image: Array) -> tuple[Array, tuple[Array, ...], Array]:
     spectrum = jnp.fft.rfft2(image)
-    return analyse_spectrum(filters, spectrum)
+    return analyze_spectrum(filters, spectrum)
 
 
-def analyse_spectrum(filters: Filters, spectrum: Array) -> tuple[Array, tuple[Array, ...], Array]:
+def analyze_spectrum(filters: Filters, spectrum: Array) -> tuple[Array, tuple[Array, ...], Array]:
     """Pyramid coefficients ``(highpass, bands, lowpass)`` from the rfft2 of a (padded) image,
     so an iterative algorithm can stay in the frequency domain between iterations."""
     sizes = filters.sizes
@@ -285,7 +285,7 @@ def analyse_spectrum(filters: Filters, spectrum: Array) -> tuple[Array, tuple[Ar
     return highpass, tuple(bands), lowpass
 
 
-def synthesise_spectrum(
+def synthesize_spectrum(
     filters: Filters, highpass: Array, bands: tuple[Array, ...], lowpass: Array
 ) -> Array:
     """rfft2 of the (padded) image that the coefficients reconstruct."""
@@ -299,7 +299,7 @@ def synthesise_spectrum(
 
 
 def _synthesise(filters: Filters, highpass: Array, bands: tuple[Array, ...], lowpass: Array):
-    spectrum = synthesise_spectrum(filters, highpass, bands, lowpass)
+    spectrum = synthesize_spectrum(filters, highpass, bands, lowpass)
     return jnp.fft.irfft2(spectrum, s=filters.sizes[0])
 
 

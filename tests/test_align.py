@@ -275,7 +275,7 @@ def test_cli_align_then_synth_and_unwarp(tmp_path, lfw64, warped, capsys):
     synth = tmp_path / "synth"
     code = main(
         ["faces", "synth", str(aligned), "--grey", "--n", "2", "--grid", "4", "--out", str(synth),
-         "--unwarp", str(aligned / "transforms.json")]
+         "--unwarp", str(aligned / "transforms.json"), "--json"]
     )  # fmt: skip
     assert code == 0
     frames = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames_of"]

@@ -145,7 +145,9 @@ def test_reflect_boundary_synthesis(texture, stats):
 
 def test_save_load_and_population(tmp_path, texture, stats):
     detail.save_stats(tmp_path / "s.npz", stats, source="gravel", seed=3)
-    loaded, meta = detail.load_stats(tmp_path / "s.npz")
+    saved = detail.load_stats(tmp_path / "s.npz")
+    assert isinstance(saved, detail.SavedStats)
+    loaded, meta = saved.stats, saved.metadata
     np.testing.assert_array_equal(loaded.std, stats.std)
     assert meta["source"] == "gravel" and meta["grid"] == 16 and "jface_version" in meta
     other = detail.analyze(texture * 2.0)

@@ -132,7 +132,7 @@ def test_cli_interpolate_age_add_detail(face_dirs, faces, tmp_path, capsys):
     back = read_face(face_dirs[0])
     np.testing.assert_allclose(back.base.vertices, faces[0].base.vertices, atol=1e-5)
     np.testing.assert_allclose(back.offsets[-1], faces[0].offsets[-1], atol=1e-6)
-    small = ["--grid", "4", "--n-iter", "4"]
+    small = ["--grid", "4", "--iters", "4", "--json"]
     out = tmp_path / "mix"
     assert (
         main(["interpolate", *face_dirs, "--weights", "0.5,0.25,0.25", "--out", str(out), *small])

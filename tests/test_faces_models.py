@@ -324,7 +324,8 @@ def test_save_load_roundtrip(tmp_path, fa_lfw):
     bil = faces.BilinearModel(random_model(0, d=8, q=2, shape=(2, 2, 2)))
     for i, model in enumerate([fa_lfw.model, mix, bil]):
         path = faces.save_model(tmp_path / f"m{i}.npz", model, {"note": "test"})
-        loaded, meta = faces.load_model(path)
+        saved = faces.load_model(path)
+        loaded, meta = saved.model, saved.metadata
         assert type(loaded) is type(model) and meta["note"] == "test" and "jface_version" in meta
         for a, b in zip(
             jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(model), strict=True
@@ -398,12 +399,19 @@ def test_cli_train_and_sample(tmp_path, monkeypatch, lfw, capsys):
     model = tmp_path / "model.npz"
     args = ["faces", "train", *paths, "--out", str(model), "--factors", "3", "--iters", "5"]
     assert jface.cli.main(args) == 0
-    loaded, meta = faces.load_model(model)
-    assert loaded.shape == (25, 25) and meta["n_images"] == 12 and meta["n_factors"] == 3
+    saved = faces.load_model(model)
+    loaded, meta = saved.model, saved.metadata
+    assert (
+        isinstance(saved, faces.SavedModel)
+        and loaded.shape == (25, 25)
+        and meta["n_images"] == 12
+        and meta["n_factors"] == 3
+    )
     out = tmp_path / "samples"
     assert jface.cli.main(["faces", "sample", str(model), "--n", "5", "--out", str(out)]) == 0
     assert len(list(out.glob("sample_*.png"))) == 5
-    assert read_image(out / "grid.png").shape == (2 * 26 + 1, 3 * 26 + 1)  # 3 columns, 2 rows
+    # 3 columns, 2 rows of 25 px faces, enlarged 7× to be at least 512 px wide
+    assert read_image(out / "grid.png").shape == (7 * (2 * 26 + 1), 7 * (3 * 26 + 1))
     write_png(tmp_path / "small.png", lfw[0, :20, :20])
     bad = [
         "faces",

@@ -107,8 +107,9 @@ def test_cli_analyze_synthesize_render(tmp_path, gravel, capsys):
             str(out),
             "--seed",
             "3",
-            "--n-iter",
+            "--iters",
             "4",
+            "--json",
         ]
     )
     assert code == 0
@@ -132,7 +133,8 @@ def test_cli_analyze_synthesize_render(tmp_path, gravel, capsys):
     other.mkdir()
     twin = io.write_exr(other / "face0.exr", gravel[:256, :256].astype(np.float32))
     assert main(["analyze", maps[0], str(twin), "--out", str(tmp_path / "s2")]) == 2
-    assert "share the output name" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{maps[0]} and {twin} would both write the output 'face0.stats.npz'" in err
     # The shaded PNG beside the output must not replace an input either.
     png_input = tmp_path / "start.png"
     io.write_png(png_input, gravel[:256, :256])
@@ -146,7 +148,7 @@ def test_cli_analyze_synthesize_render(tmp_path, gravel, capsys):
             stats_file,
             "--out",
             str(tmp_path / "start.exr"),
-            "--n-iter",
+            "--iters",
             "1",
         ]
     )

@@ -173,7 +173,7 @@ def test_remesh_without_landmarks_finds_them(tmp_path, found, capsys, monkeypatc
     scan_path = str(data.path("lee_perry_smith_head.obj"))
     monkeypatch.setattr(sys, "argv", ["jface"])
     out = tmp_path / "face"
-    main(["remesh", scan_path, "--out-dir", str(out), "--image-size", "64"])
+    main(["remesh", scan_path, "--out", str(out), "--image-size", "64"])
     assert "no --landmarks: found the 21 landmarks" in capsys.readouterr().out
     written = json.loads((out / "landmarks.json").read_text())
     points = np.asarray([written[n] for n in NAMES])

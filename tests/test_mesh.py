@@ -209,7 +209,7 @@ def test_cli_remesh_and_displace(tmp_path, capsys):
     marks = io.write_landmarks(tmp_path / "marks.json", mesh.MEDIAPIPE_IDS)
     out = tmp_path / "out"
     small = ["--linear", "1", "--loop", "1", "--smooth", "1", "--image-size", "64"]
-    argv = ["remesh", str(scan), "--landmarks", str(marks), "--out-dir", str(out), *small]
+    argv = ["remesh", str(scan), "--landmarks", str(marks), "--out", str(out), *small]
     assert main(argv) == 0
     assert "hit rates" in capsys.readouterr().out
     names = {p.name for p in out.iterdir()}

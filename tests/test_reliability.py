@@ -130,7 +130,7 @@ def test_every_command_refuses_its_input_as_output(files, face_folder, tmp_path,
         (["render", f["png"], "--out", f["png"]], "refusing to overwrite"),
         (["render", d / "alias.png", "--out", f["png"]], "same file"),
         (["displace", f["obj"], f["m"], "--out", f["obj"]], "refusing to overwrite"),
-        (["remesh", face / "base.obj", "--landmarks", f["params"], "--out-dir", face], "base.obj"),
+        (["remesh", face / "base.obj", "--landmarks", f["params"], "--out", face], "base.obj"),
         (["db", "build", f["m"], "--out", f["m"]], "must end in .npz"),
         (["db", "compare", f["pop"], *GROUPS, "--out", d / "pop_link.png"], "same file"),
         (["interpolate", d / "average", face, "--out", d], "average/base.obj"),
@@ -161,8 +161,8 @@ def test_every_command_refuses_its_input_as_output(files, face_folder, tmp_path,
             ["wrinkles", "extract", f["m"], "--out", d / "e.json", "--pores-out", d / "e.json"],
             "one file",
         ),
-        (["fit", f["m"], "--out", f["m"]], "must end in .json"),
-        (["fit", d / "m_convergence.png", "--out", d / "m.json"], "m_convergence.png"),
+        (["wrinkles", "fit", f["m"], "--out", f["m"]], "must end in .json"),
+        (["wrinkles", "fit", d / "m_convergence.png", "--out", d / "m.json"], "m_convergence.png"),
     ]
     for argv, fragment in cases:
         refused(d, argv, capsys, fragment)
@@ -218,7 +218,7 @@ def _reader_commands(f, tmp_path, face_folder):
         ("wrinkle parameters", f["params"], [*wr, "--params", f["params"]]),
         ("pores", pores, [*wr, "--params", f["params"], "--pores", pores]),
         ("records", meta, ["db", "build", f["m"], "--metadata", meta, "--out", out / "db.npz"]),
-        ("landmarks", landmarks, ["remesh", f["obj"], "--landmarks", landmarks, "--out-dir", out]),
+        ("landmarks", landmarks, ["remesh", f["obj"], "--landmarks", landmarks, "--out", out]),
         ("OBJ mesh", f["obj"], ["displace", f["obj"], f["m"], "--out", out / "d.obj"]),
         ("PLY mesh", ply, ["displace", ply, f["m"], "--out", out / "d.obj"]),
     ]
@@ -351,10 +351,7 @@ def test_wrong_shapes_non_finite_and_huge_values(files, tmp_path, capsys):
             ["synthesize", f["m"], "--stats", d / "complex.npz", "--out", out / "s.exr"],
             "complex.npz",
         ),
-        *[
-            (["remesh", f["obj"], "--landmarks", d / n, "--out-dir", out], n)
-            for n in landmark_files
-        ],
+        *[(["remesh", f["obj"], "--landmarks", d / n, "--out", out], n) for n in landmark_files],
         *[([*wr, "--params", d / n], n) for n in params],
         *[([*wr, "--params", f["params"], "--pores", d / n], n) for n in [*pores, "pnan.json"]],
         *[
@@ -437,7 +434,7 @@ def test_a_failure_after_the_first_output_leaves_nothing(files, tmp_path, capsys
         files["stats"],
         "--out",
         tmp_path / "s.exr",
-        "--n-iter",
+        "--iters",
         "1",
     ]
     assert "No space left on device" in refused(tmp_path, argv, capsys)
@@ -463,10 +460,10 @@ def test_analyze_reruns_recompute_what_changed(tmp_path, capsys):
     edited = io.write_exr(m, noise() * 3)
     assert "analyzed 1 map(s), kept 1" in run("--grid", "4", "--scales", "2")
     np.testing.assert_allclose(
-        detail.load_stats(out / "m.stats.npz")[0].std, stats_of(edited, grid=4, n_scales=2)
+        detail.load_stats(out / "m.stats.npz").stats.std, stats_of(edited, grid=4, n_scales=2)
     )
     assert "analyzed 2 map(s), kept 0" in run("--grid", "8", "--scales", "2")
-    assert detail.load_stats(out / "n.stats.npz")[0].grid == 8
+    assert detail.load_stats(out / "n.stats.npz").stats.grid == 8
     (out / "n.stats.png").unlink()  # a lost picture is made again
     assert "analyzed 1 map(s), kept 1" in run("--grid", "8", "--scales", "2")
 
@@ -558,7 +555,7 @@ def test_same_seed_same_bytes(files, tmp_path):
     )
     commands = [
         ["synthesize", f["m"], "--stats", f["stats"], "--out", "{out}/s.exr", "--seed", "3",
-         "--n-iter", "2"],
+         "--iters", "2"],
         ["analyze", f["m"], tmp_path / "n.png", "--out", "{out}/stats", "--grid", "4",
          "--scales", "2"],
         ["db", "build", f["m"], f["png"], "--out", "{out}/db.npz", "--grid", "4", "--scales",

@@ -9,7 +9,6 @@ results as face folders too, so they chain (interpolate, then age the result, ..
 from __future__ import annotations
 
 import argparse
-import json
 from importlib import resources
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jface import detail, io, mesh, render, wrinkles
+from jface.cli import deprecated_alias
 from jface.cli._detail import _parse_group
 from jface.cli._mesh import check_face_outputs, write_face
 from jface.detail._meshes import check_faces
@@ -34,7 +34,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     interp.add_argument("--out", required=True, help="output folder")
     _synthesis_options(interp)
-    interp.set_defaults(run=_interpolate)
+    interp.set_defaults(
+        run=_interpolate,
+        prose="wrote {out}/: median per-tile std error {average[median_tile_std_error]:.1%} "
+        "(average), {coerced[median_tile_std_error]:.1%} (coerced)",
+    )
 
     add = sub.add_parser(
         "add-detail", help="coerce a low-resolution face's detail to target statistics (§3.3)"
@@ -43,7 +47,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     _target_options(add, required=True)
     add.add_argument("--out", required=True, help="output folder")
     _synthesis_options(add)
-    add.set_defaults(run=_add_detail)
+    add.set_defaults(
+        run=_add_detail,
+        prose="wrote {out}/: median per-tile std error {median_tile_std_error[before]:.1%} "
+        "before, {median_tile_std_error[after]:.1%} after",
+    )
 
     age = sub.add_parser(
         "age",
@@ -61,7 +69,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _target_options(age, required=False)
     age.add_argument("--out", required=True, help="output folder")
     _synthesis_options(age)
-    age.set_defaults(run=_age)
+    age.set_defaults(run=_age, prose="wrote {out}/; methods compared: {methods}")
 
 
 def _synthesis_options(parser: argparse.ArgumentParser) -> None:
@@ -74,11 +82,12 @@ def _synthesis_options(parser: argparse.ArgumentParser) -> None:
         help="random seed of the synthesis noise (default %(default)s)",
     )
     parser.add_argument(
-        "--n-iter",
+        "--iters",
         type=int,
         default=detail._synthesis.N_ITER,
         help="synthesis iterations (Anderson-accelerated, then a polish) (default %(default)s)",
     )
+    deprecated_alias(parser, "--n-iter", "--iters")
     parser.add_argument(
         "--noise",
         type=float,
@@ -157,7 +166,7 @@ def _target(
     if args.group and not args.db:
         raise ValueError("--group needs --db")
     if args.stats:
-        return detail.load_stats(args.stats)[0].reduced(), Path(args.stats).name
+        return detail.load_stats(args.stats).stats.reduced(), Path(args.stats).name
     if args.db:
         if not args.group:
             raise ValueError("--db needs --group FIELD=VALUE[,...] naming the target group")
@@ -170,7 +179,7 @@ def _target(
 
 
 def _options(args: argparse.Namespace) -> dict:
-    return {"n_iter": args.n_iter, "noise": args.noise}
+    return {"n_iter": args.iters, "noise": args.noise}
 
 
 def _error(image, target: detail.DetailStats) -> float:
@@ -183,7 +192,7 @@ def _tile_errors(image, target: detail.DetailStats) -> np.ndarray:
     return np.median(np.asarray(detail.stats_error(detail.analyze_like(image, target), target)), 0)
 
 
-def _interpolate(args: argparse.Namespace) -> None:
+def _interpolate(args: argparse.Namespace) -> dict:
     for name in ("average", "coerced"):
         check_face_outputs(Path(args.out) / name, args.format)
     faces = [read_face(f) for f in tqdm(args.faces, desc="read faces", unit="face")]
@@ -215,10 +224,10 @@ def _interpolate(args: argparse.Namespace) -> None:
     figure = render.strip([render.shade(result.average.image), render.shade(result.coerced.image)])
     io.write_png(out / "average_vs_coerced.png", figure, metadata=meta)
     io.write_json(out / "interpolation.json", {**meta, "results": table})
-    print(json.dumps({"out": str(out), **table}))
+    return {"out": str(out), **table}
 
 
-def _add_detail(args: argparse.Namespace) -> None:
+def _add_detail(args: argparse.Namespace) -> dict:
     check_face_outputs(Path(args.out), args.format)
     face = read_face(args.face)
     target, source = _target(args, None)
@@ -236,10 +245,10 @@ def _add_detail(args: argparse.Namespace) -> None:
     io.write_png(out / "before_after.png", figure, metadata=meta)
     table = {"before": _error(face.image, target), "after": _error(result.image, target)}
     io.write_json(out / "add_detail.json", {**meta, "median_tile_std_error": table})
-    print(json.dumps({"out": str(out), "median_tile_std_error": table}))
+    return {"out": str(out), "median_tile_std_error": table}
 
 
-def _age(args: argparse.Namespace) -> None:
+def _age(args: argparse.Namespace) -> dict:
     for name in ("aged", "detail_only"):
         check_face_outputs(Path(args.out) / name, args.format)
     young, old = read_face(args.young), read_face(args.old)
@@ -258,7 +267,7 @@ def _age(args: argparse.Namespace) -> None:
         jax.random.key(args.seed), young, old, target, out, meta, args.levels, _options(args),
         fmt=args.format,
     )  # fmt: skip
-    print(json.dumps({"out": str(out), "methods": scores}))
+    return {"out": str(out), "methods": scores}
 
 
 def age_and_compare(

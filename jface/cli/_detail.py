@@ -13,6 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jface import detail, io, render
+from jface.cli import deprecated_alias, refuse_shared_names
 from jface.detail._population import check_records
 
 
@@ -20,7 +21,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     analyze = sub.add_parser(
         "analyze", help="per-tile steerable-pyramid statistics of displacement maps"
     )
-    analyze.add_argument("files", nargs="+", help="maps: EXR (one channel), PNG/JPEG or .npy")
+    analyze.add_argument(
+        "files",
+        nargs="+",
+        help="maps: EXR (one channel), PNG/JPEG or .npy, or face folders of jface remesh "
+        "(their displacement.exr, named by the folder)",
+    )
     analyze.add_argument("--out", required=True, help="output folder (one .npz + .png per map)")
     analyze.add_argument(
         "--grid",
@@ -44,7 +50,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     analyze.add_argument(
         "--overwrite", action="store_true", help="redo maps whose statistics already exist"
     )
-    analyze.set_defaults(run=_analyze)
+    analyze.set_defaults(
+        run=_analyze,
+        prose="analyzed {analyzed} map(s), kept {kept} already done (same content and settings), "
+        "in {out}/",
+    )
 
     synth = sub.add_parser("synthesize", help="coerce a map to target statistics")
     synth.add_argument("start", help="map to start from")
@@ -57,11 +67,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="random seed of the synthesis noise (default %(default)s)",
     )
     synth.add_argument(
-        "--n-iter",
+        "--iters",
         type=int,
         default=detail._synthesis.N_ITER,
         help="synthesis iterations (Anderson-accelerated, then a polish) (default %(default)s)",
     )
+    deprecated_alias(synth, "--n-iter", "--iters")
     synth.add_argument(
         "--noise",
         type=float,
@@ -86,12 +97,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="pyramid boundary (default: the one the statistics were analysed with)",
     )
-    synth.set_defaults(run=_synthesize)
+    synth.set_defaults(
+        run=_synthesize, prose="wrote {out}: median per-tile std error {median_tile_std_error:.1%}"
+    )
 
     db = sub.add_parser("db", help="statistics databases of many faces")
     db_sub = db.add_subparsers(dest="db_command", required=True, metavar="ACTION")
     build = db_sub.add_parser("build", help="analyse many maps into one population file")
-    build.add_argument("files", nargs="+", help="displacement maps, all of one size")
+    build.add_argument(
+        "files",
+        nargs="+",
+        help="displacement maps, all of one size, or face folders of jface remesh (records "
+        "named by the folder)",
+    )
     build.add_argument("--out", required=True, help="population file (.npz)")
     build.add_argument(
         "--metadata", help="JSON list (or JSON-lines file) of records, one per map, with 'id'"
@@ -146,7 +164,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="seconds to reach the coordinator, and to notice a process that stopped "
         "(default %(default)s)",
     )
-    build.set_defaults(run=_db_build)
+    build.set_defaults(run=_db_build, prose="{faces} faces in {out}")
     compare = db_sub.add_parser(
         "compare", help="compare groups tile by tile (Golovinskiy et al. Fig. 6)"
     )
@@ -158,23 +176,43 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="NAME:FIELD=VALUE[,FIELD=LOW..HIGH]",
         help="a group by record fields, e.g. 'young:age=20..30,sex=m' (repeat, 2-4 groups)",
     )
-    compare.add_argument("--scale", type=int, default=1, help="pyramid scale to draw")
+    compare.add_argument(
+        "--show-scale", type=int, default=1, help="pyramid scale to draw, 0 = finest (default 1)"
+    )
+    deprecated_alias(compare, "--scale", "--show-scale")
     compare.add_argument("--out", required=True, help="output PNG (a .json table is written too)")
-    compare.set_defaults(run=_db_compare)
+    compare.set_defaults(run=_db_compare, prose="wrote {out}; reference group {reference}")
 
     draw = sub.add_parser("render", help="shaded relief PNG of a displacement map")
     draw.add_argument("map", help="map file")
     draw.add_argument("--out", required=True, help="output PNG")
-    draw.set_defaults(run=_render)
+    draw.set_defaults(run=_render, prose="wrote {out}")
 
 
-def _analyze(args: argparse.Namespace) -> None:
+def map_inputs(names: list[str]) -> tuple[list[str], list[str]]:
+    """The map files among command-line inputs and a name for each: a face folder written by
+    ``jface remesh`` stands for its ``displacement.exr`` and is named by the folder, a file by its
+    stem."""
+    files, labels = [], []
+    for name in names:
+        path = Path(name)
+        if path.is_dir():
+            if not (path / "displacement.exr").is_file():
+                raise FileNotFoundError(
+                    f"{path} is a folder without displacement.exr (not a face of jface remesh)"
+                )
+            files.append(str(path / "displacement.exr"))
+            labels.append(path.resolve().name)
+        else:
+            files.append(name)
+            labels.append(path.stem)
+    return files, labels
+
+
+def _analyze(args: argparse.Namespace) -> dict:
     out = Path(args.out)
-    stems = [Path(name).stem.casefold() for name in args.files]
-    clashes = sorted({Path(n).stem for n, s in zip(args.files, stems, strict=True)
-                      if stems.count(s) > 1})  # fmt: skip
-    if clashes:
-        raise ValueError(f"several inputs share the output name(s) {clashes}; rename them")
+    files, labels = map_inputs(args.files)
+    refuse_shared_names(args.files, [f"{label}.stats.npz" for label in labels])
     settings = {
         "grid": args.grid,
         "n_scales": args.scales,
@@ -182,18 +220,20 @@ def _analyze(args: argparse.Namespace) -> None:
         "bins": args.bins,
         "boundary": args.boundary,
     }
-    for name in args.files:
-        io.check_output(out / (Path(name).stem + ".stats.npz"), (".npz",))
-        io.check_output(out / (Path(name).stem + ".stats.png"), (".png",))
+    for label in labels:
+        io.check_output(out / (label + ".stats.npz"), (".npz",))
+        io.check_output(out / (label + ".stats.png"), (".png",))
     done = skipped = 0
-    for name in tqdm(args.files, desc="analyze", unit="map", disable=len(args.files) < 2):
-        target = out / (Path(name).stem + ".stats.npz")
+    pairs = list(zip(files, labels, strict=True))
+    for name, label in tqdm(pairs, desc="analyze", unit="map", disable=len(files) < 2):
+        target = out / (label + ".stats.npz")
+        source = Path(name).name if label == Path(name).stem else f"{label}/{Path(name).name}"
         picture = target.with_suffix(".png")
         key = io.content_key([name], {"kind": "DetailStats", **settings})
         if target.exists() and not args.overwrite:
             with io.own_outputs():
-                _, meta = detail.load_stats(target)
-            if meta.get("source") != Path(name).name:
+                meta = detail.load_stats(target).metadata
+            if meta.get("source") != source:
                 raise ValueError(
                     f"{target} holds statistics of {meta.get('source')!r}, not of {name}; "
                     "use another --out or --overwrite"
@@ -202,30 +242,28 @@ def _analyze(args: argparse.Namespace) -> None:
                 skipped += 1  # same map, same settings: a batch that died keeps what it did
                 continue
         stats = detail.analyze(io.read_map(name), **settings)
-        detail.save_stats(target, stats, source=Path(name).name, boundary=args.boundary, key=key)
+        detail.save_stats(target, stats, source=source, boundary=args.boundary, key=key)
         mosaic = render.stats_mosaic(stats.std, stats.n_orientations)
-        meta = io.provenance(source=Path(name).name, grid=args.grid, scales=args.scales)
+        meta = io.provenance(source=source, grid=args.grid, scales=args.scales)
         io.write_png(picture, mosaic, metadata=meta)
         io.commit()  # each finished map survives a crash of a later one
         done += 1
-    print(
-        f"analyzed {done} map(s), kept {skipped} already done (same content and settings), "
-        f"in {out}/"
-    )
+    return {"out": str(out), "analyzed": done, "kept": skipped}
 
 
-def _synthesize(args: argparse.Namespace) -> None:
+def _synthesize(args: argparse.Namespace) -> dict:
     out = io.check_output(args.out, (".exr",))
     io.check_output(out.with_suffix(".png"), (".png",))
     start = io.read_map(args.start)
-    target, stats_meta = detail.load_stats(args.stats)
+    saved = detail.load_stats(args.stats)
+    target, stats_meta = saved.stats, saved.metadata
     boundary = args.boundary or stats_meta.get("boundary", "circular")
     method = args.method or ("histogram" if target.full else "std")
     result = detail.synthesize(
         jax.random.key(args.seed),
         start,
         target,
-        n_iter=args.n_iter,
+        n_iter=args.iters,
         noise=args.noise,
         rule=args.rule,
         method=method,
@@ -237,7 +275,7 @@ def _synthesize(args: argparse.Namespace) -> None:
         seed=args.seed,
         start=Path(args.start).name,
         stats=Path(args.stats).name,
-        n_iter=args.n_iter,
+        iters=args.iters,
         noise=args.noise,
         rule=args.rule,
         method=method,
@@ -245,7 +283,7 @@ def _synthesize(args: argparse.Namespace) -> None:
     )
     io.write_exr(out, np.asarray(result), metadata=meta)
     io.write_png(out.with_suffix(".png"), render.shade(result), metadata=meta)
-    print(json.dumps({"out": str(out), "median_tile_std_error": float(np.median(error))}))
+    return {"out": str(out), "median_tile_std_error": float(np.median(error))}
 
 
 def _read_records(path: str, n_maps: int) -> list[dict]:
@@ -267,8 +305,15 @@ def _read_records(path: str, n_maps: int) -> list[dict]:
     return data
 
 
-def _db_build(args: argparse.Namespace) -> None:
-    records = _read_records(args.metadata, len(args.files)) if args.metadata else None
+def _db_build(args: argparse.Namespace) -> dict:
+    files, labels = map_inputs(args.files)
+    if args.metadata:
+        records = _read_records(args.metadata, len(files))
+    elif any(Path(name).is_dir() for name in args.files):
+        refuse_shared_names(args.files, labels)
+        records = [{"id": label} for label in labels]
+    else:
+        records = None  # ids from the file names, as many parent folders as tell them apart
     joined = args.coordinator is not None or args.process_id is not None
     if args.processes != 1:
         if args.processes < 1 or joined or args.num_processes is not None or args.cluster:
@@ -281,7 +326,7 @@ def _db_build(args: argparse.Namespace) -> None:
         command += ["--metadata", args.metadata] if args.metadata else []
         command += ["--bins", str(args.bins)] if args.bins is not None else []
         detail.run_local_processes(command, args.processes, timeout=args.timeout)
-        return
+        return {}  # process 0 of the launched processes reports
     # on CPU, bits must not depend on thread scheduling; JAX reads the flags at its start
     os.environ["XLA_FLAGS"] = detail.deterministic_cpu_flags(os.environ.get("XLA_FLAGS", ""))
     if joined or args.num_processes is not None or args.cluster:
@@ -291,7 +336,7 @@ def _db_build(args: argparse.Namespace) -> None:
             args.coordinator, args.process_id, args.num_processes, timeout=args.timeout
         )
     population = detail.build_database(
-        args.files,
+        files,
         args.out,
         records=records,
         grid=args.grid,
@@ -300,8 +345,9 @@ def _db_build(args: argparse.Namespace) -> None:
         chunk=args.chunk,
         progress=jax.process_index() == 0,
     )
-    if population is not None:  # process 0 writes the database and reports
-        print(f"{len(population)} faces in {args.out}")
+    if population is None:  # process 0 writes the database and reports
+        return {}
+    return {"out": args.out, "faces": len(population)}
 
 
 def _parse_group(spec: str) -> tuple[str, dict]:
@@ -329,7 +375,7 @@ def _parse_group(spec: str) -> tuple[str, dict]:
     return name, criteria
 
 
-def _db_compare(args: argparse.Namespace) -> None:
+def _db_compare(args: argparse.Namespace) -> dict:
     out = io.check_output(args.out, (".png",))
     io.check_output(out.with_suffix(".json"), (".json",))
     population = detail.Population.load(args.db)
@@ -341,14 +387,14 @@ def _db_compare(args: argparse.Namespace) -> None:
         raise ValueError(f"at most {len(render.GROUP_COLOURS)} groups, got {len(groups)}")
     comparison = detail.compare_groups(groups)
     k = population.stats.n_orientations
-    if not 0 <= args.scale < population.stats.n_scales:
-        raise ValueError(f"--scale must be in [0, {population.stats.n_scales - 1}]")
-    first = 1 + args.scale * k
+    if not 0 <= args.show_scale < population.stats.n_scales:
+        raise ValueError(f"--show-scale must be in [0, {population.stats.n_scales - 1}]")
+    first = 1 + args.show_scale * k
     ratios = np.asarray(comparison.ratios[:, first : first + k])
     io.write_png(
         out,
         render.polar_glyphs(ratios),
-        metadata=io.provenance(db=Path(args.db).name, groups=args.group, scale=args.scale),
+        metadata=io.provenance(db=Path(args.db).name, groups=args.group, scale=args.show_scale),
     )
     table = {
         name: {"faces": len(groups[name]), "mean_ratio": float(ratios[i].mean())}
@@ -356,13 +402,14 @@ def _db_compare(args: argparse.Namespace) -> None:
     }
     table["reference"] = comparison.names[comparison.reference]
     io.write_json(out.with_suffix(".json"), table)
-    print(json.dumps(table))
+    return {"out": str(out), **table}
 
 
-def _render(args: argparse.Namespace) -> None:
+def _render(args: argparse.Namespace) -> dict:
     io.check_output(args.out, (".png",))
     meta = io.provenance(source=Path(args.map).name)
     io.write_png(args.out, render.shade(io.read_map(args.map)), metadata=meta)
+    return {"out": args.out}
 
 
 def demo(out: Path, seed: int) -> None:

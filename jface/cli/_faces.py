@@ -4,7 +4,6 @@ to a template (and un-warp synthesised ones, ``synth --unwarp``)."""
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 from importlib import resources
@@ -16,6 +15,7 @@ from tqdm import tqdm
 
 from jface import faces, raster
 from jface.cli import _quilt as quilting
+from jface.cli import deprecated_alias, refuse_shared_names
 from jface.io import (
     check_output,
     load_arrays,
@@ -33,16 +33,34 @@ def register(subparsers) -> None:
     )
     sub = parser.add_subparsers(dest="faces_command", required=True, metavar="ACTION")
 
-    train = sub.add_parser("train", help="fit a factor analyser (or a mixture) to face images")
-    train.add_argument("images", nargs="+", help="aligned face images of one size (PNG/JPEG)")
+    train = sub.add_parser(
+        "train",
+        help="fit a factor analyser (or a mixture, or the bilinear style model) to face images",
+    )
+    train.add_argument(
+        "images",
+        nargs="+",
+        help="aligned face images of one size (PNG/JPEG) or folders of them; with --bilinear, "
+        "one folder per style holding the same people under the same file names",
+    )
     train.add_argument("--out", required=True, help="model file to write (.npz)")
     train.add_argument("--factors", type=int, default=8, help="number of factors (default 8)")
     train.add_argument(
         "--components", type=int, default=1, help="mixture components (default 1: one FA)"
     )
+    train.add_argument(
+        "--bilinear",
+        action="store_true",
+        help="fit the asymmetric bilinear style model (§6.3) that `jface faces restyle` uses",
+    )
     train.add_argument("--iters", type=int, default=40, help="EM iterations (default 40)")
     train.add_argument("--seed", type=int, default=0, help="seed of the mixture initialisation")
-    train.set_defaults(run=_train)
+    train.set_defaults(
+        run=_train,
+        prose="fitted {model} to {images} images of {width}×{height} in {seconds:.1f} s: "
+        "log-likelihood {first_log_likelihood:.1f} → {log_likelihood:.1f} nats/image; "
+        "wrote {out}",
+    )
 
     sample = sub.add_parser("sample", help="draw images from a trained model")
     sample.add_argument("model", help="model file written by `jface faces train`")
@@ -50,7 +68,14 @@ def register(subparsers) -> None:
     sample.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sample.add_argument("--noise", action="store_true", help="add the per-pixel noise term")
     sample.add_argument("--out", required=True, help="output folder (PNGs and grid.png)")
-    sample.set_defaults(run=_sample)
+    sample.add_argument(
+        "--upscale",
+        type=int,
+        default=None,
+        help="pixel-repeat factor of grid.png (default: the smallest that makes it "
+        f"{quilting.FIGURE_SIDE} pixels or more across; the sample PNGs keep their size)",
+    )
+    sample.set_defaults(run=_sample, prose="wrote {n} samples and {grid}")
 
     align = sub.add_parser(
         "align", help="register face images to a template by an affine map (§2.2)"
@@ -70,12 +95,17 @@ def register(subparsers) -> None:
     align.add_argument("--grey", action="store_true", help="read the faces as greyscale")
     align.add_argument("--levels", type=int, default=3, help="pyramid levels (default 3)")
     align.add_argument(
-        "--max-steps", type=int, default=100, help="solver steps per level (default 100)"
+        "--iters", type=int, default=100, help="registration solver steps per level (default 100)"
     )
+    deprecated_alias(align, "--max-steps", "--iters")
     align.add_argument(
         "--out", required=True, help="output folder: the aligned faces and transforms.json"
     )
-    align.set_defaults(run=_align)
+    align.set_defaults(
+        run=_align,
+        prose="aligned {faces} faces to a {width}×{height} template by {method} (rms to the "
+        "template: median {rms_median:.3f}, max {rms_max:.3f}); wrote {out}/",
+    )
 
     quilting.add_actions(sub, sample_name="synth")
     synth = sub.choices["synth"]
@@ -94,26 +124,55 @@ def _fit(data: np.ndarray, factors: int, components: int, iters: int, seed: int)
     return faces.fit_mixture(jax.random.key(seed), data, components, factors, n_iter=iters)
 
 
-def _train(args: argparse.Namespace) -> None:
+def _styles(folders: list[str]) -> np.ndarray:
+    """``(n, S, H, W)`` faces of the style folders, paired by file name."""
+    if len(folders) < 2 or not all(Path(f).is_dir() for f in folders):
+        raise ValueError(
+            f"--bilinear needs two or more style folders (one per style), got {folders}"
+        )
+    stacks = [quilting.read_faces([folder], grey=True) for folder in folders]
+    names = [[f.name for f in files] for _, files in stacks]
+    for folder, these in zip(folders[1:], names[1:], strict=True):
+        if these != names[0]:
+            odd = sorted(set(these) ^ set(names[0]))
+            raise ValueError(
+                f"style folders must hold the same file names (one face per person): "
+                f"{folders[0]} and {folder} differ in {odd[:3]}"
+            )
+    return np.stack([images for images, _ in stacks], axis=1)
+
+
+def _train(args: argparse.Namespace) -> dict:
     check_output(args.out, (".npz",))
-    data, _ = quilting.read_faces(args.images, grey=True)
+    if args.bilinear and args.components != 1:
+        raise ValueError("--bilinear fits one bilinear model: leave --components at 1")
+    data = _styles(args.images) if args.bilinear else quilting.read_faces(args.images, grey=True)[0]
     start = time.perf_counter()
-    result = _fit(data, args.factors, args.components, args.iters, args.seed)
+    if args.bilinear:
+        result = faces.fit_bilinear(data, args.factors, n_iter=args.iters)
+    else:
+        result = _fit(data, args.factors, args.components, args.iters, args.seed)
     ll = np.asarray(result.log_likelihood)
     meta = provenance(
         seed=args.seed,
-        n_images=len(args.images),
+        n_images=int(data.shape[0]),
+        bilinear=bool(args.bilinear),
         n_factors=args.factors,
         n_components=args.components,
         n_iter=int(result.n_iter),
         log_likelihood=float(ll[-1]),
     )
     faces.save_model(args.out, result.model, meta)
-    print(
-        f"fitted {type(result.model).__name__} to {data.shape[0]} images of "
-        f"{data.shape[1]}×{data.shape[2]} in {time.perf_counter() - start:.1f} s: "
-        f"log-likelihood {ll[0]:.1f} → {ll[-1]:.1f} nats/image; wrote {args.out}"
-    )
+    return {
+        "out": args.out,
+        "model": type(result.model).__name__,
+        "images": int(data.shape[0]),
+        "height": int(data.shape[-2]),
+        "width": int(data.shape[-1]),
+        "seconds": time.perf_counter() - start,
+        "first_log_likelihood": float(ll[0]),
+        "log_likelihood": float(ll[-1]),
+    }
 
 
 def grid(images: np.ndarray, pad: int = 1) -> np.ndarray:
@@ -130,24 +189,25 @@ def grid(images: np.ndarray, pad: int = 1) -> np.ndarray:
     return out
 
 
-def _write_samples(out: Path, images: np.ndarray, meta: dict, *, scale: int = 1) -> Path:
+def _write_samples(out: Path, images: np.ndarray, meta: dict, *, upscale: int | None) -> Path:
     images = np.clip(images, 0.0, 1.0)
     for i, img in enumerate(images):
         write_png(out / f"sample_{i:03d}.png", img, metadata=meta)
-    big = np.kron(grid(images), np.ones((scale, scale), np.float32))
-    return write_png(out / "grid.png", big, metadata=meta)
+    return write_png(out / "grid.png", quilting.enlarge(grid(images), upscale), metadata=meta)
 
 
-def _sample(args: argparse.Namespace) -> None:
-    model, _ = faces.load_model(args.model)
+def _sample(args: argparse.Namespace) -> dict:
+    if args.upscale is not None and args.upscale < 1:
+        raise ValueError(f"--upscale must be at least 1, got {args.upscale}")
+    model = faces.load_model(args.model).model
     if isinstance(model, faces.BilinearModel):
         model = faces.style(model, 0)
     if len(model.shape) != 2:
         raise ValueError(f"{args.model} describes vectors of shape {model.shape}, not images")
     images = np.asarray(faces.sample(jax.random.key(args.seed), model, args.n, noise=args.noise))
     meta = provenance(seed=args.seed, model=str(args.model), n=args.n, noise=bool(args.noise))
-    path = _write_samples(Path(args.out), images, meta)
-    print(f"wrote {args.n} samples and {path}")
+    path = _write_samples(Path(args.out), images, meta, upscale=args.upscale)
+    return {"out": args.out, "n": args.n, "grid": str(path)}
 
 
 # --- demo ------------------------------------------------------------------------------------
@@ -182,7 +242,7 @@ def demo(out_dir: Path, seed: int) -> None:
     faces.save_model(out / "face_model.npz", result.model, meta)
     write_png(out / "training_grid.png", np.kron(grid(np.clip(data[:16], 0, 1)), np.ones((4, 4))))
     images = np.asarray(faces.sample(jax.random.key(seed), result.model, 16))
-    grid_path = _write_samples(out / "samples", images, meta, scale=4)
+    grid_path = _write_samples(out / "samples", images, meta, upscale=4)
     ll = np.asarray(result.log_likelihood)
     print(
         f"faces: 8-factor analyser fitted to 120 renders (log-likelihood {ll[0]:.0f} → "
@@ -213,12 +273,11 @@ def _landmark_table(path: str, files: list[Path]) -> tuple[np.ndarray, list[np.n
         raise ValueError(f"{path}: landmarks must be lists of [x, y] numbers ({err})") from err
 
 
-def _align(args: argparse.Namespace) -> None:
+def _align(args: argparse.Namespace) -> dict:
     files = quilting._image_files(args.images)
     out = Path(args.out)
     names = [f"{f.stem}.png" for f in files]
-    if len(set(names)) != len(names):
-        raise ValueError("the images must have distinct file names (the outputs take them)")
+    refuse_shared_names(files, names)
     for name in [*names, "transforms.json"]:
         check_output(out / name, (".png", ".json"))
     images = [read_image(f, grey=args.grey).astype(np.float32) for f in files]
@@ -236,9 +295,7 @@ def _align(args: argparse.Namespace) -> None:
     ):
         extra = {} if marks is None else {"landmarks": marks[1][i], "template_landmarks": marks[0]}
         try:
-            result = faces.align(
-                image, template, levels=args.levels, max_steps=args.max_steps, **extra
-            )
+            result = faces.align(image, template, levels=args.levels, max_steps=args.iters, **extra)
         except ValueError as err:
             raise ValueError(f"{file}: {err}") from err
         aligned.append(np.clip(np.asarray(result.image), 0, 1))
@@ -258,11 +315,15 @@ def _align(args: argparse.Namespace) -> None:
     document = {**meta, "template_shape": list(template.shape[:2]), "faces": records}
     write_json(out / "transforms.json", document)
     rms = [r["rms"] for r in records]
-    print(
-        f"aligned {len(files)} faces to a {template.shape[1]}×{template.shape[0]} template by "
-        f"{method} (rms to the template: median {np.median(rms):.3f}, max {max(rms):.3f}); "
-        f"wrote {out}/"
-    )
+    return {
+        "out": str(out),
+        "faces": len(files),
+        "width": int(template.shape[1]),
+        "height": int(template.shape[0]),
+        "method": method,
+        "rms_median": float(np.median(rms)),
+        "rms_max": float(max(rms)),
+    }
 
 
 def read_transforms(path: str) -> tuple[np.ndarray, list[tuple[int, int]], list[str], tuple]:
@@ -284,15 +345,14 @@ def read_transforms(path: str) -> tuple[np.ndarray, list[tuple[int, int]], list[
     return transforms, shapes, names, template_shape
 
 
-def _synth(args: argparse.Namespace) -> None:
+def _synth(args: argparse.Namespace) -> dict:
     if args.unwarp is None:
-        quilting._sample(args)
-        return
+        return quilting.sample_faces(args)[1]
     transforms, shapes, names, template_shape = read_transforms(args.unwarp)
     out = Path(args.out)
     for i in range(max(args.n, 0)):
         check_output(out / f"unwarped_{i:03d}.png", (".png",))
-    made = quilting._sample(args)
+    made, summary = quilting.sample_faces(args)
     if made.shape[1:3] != template_shape:
         raise ValueError(
             f"--unwarp: {args.unwarp} holds transforms of faces aligned to a "
@@ -313,4 +373,4 @@ def _synth(args: argparse.Namespace) -> None:
         meta = provenance(seed=args.seed, face=i, frame_of=names[index])
         write_png(out / f"unwarped_{i:03d}.png", np.clip(np.asarray(unwarped), 0, 1), metadata=meta)
         frames.append(names[index])
-    print(json.dumps({"unwarped": len(made), "frames_of": frames}))
+    return {**summary, "unwarped": len(made), "frames_of": frames}

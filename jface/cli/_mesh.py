@@ -11,6 +11,7 @@ import jax
 import numpy as np
 
 from jface import io, mesh, raster, render
+from jface.cli import deprecated_alias
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,7 +23,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     lm.add_argument("--out", required=True, help="output JSON: name → x,y,z")
     lm.add_argument("--picture", help="PNG: the shaded scan with the markers and their names")
     lm.add_argument("--seed", type=int, default=0, help="seeds the surface samples")
-    lm.set_defaults(run=_landmarks)
+    lm.set_defaults(
+        run=_landmarks,
+        prose="found the 21 landmarks of {scan} in {seconds:.1f} s: fit score {score:.3f} "
+        "(0 perfect, 1 nothing fits), {inliers:.0%} of the face model on the scan, "
+        "RMS {rms:.3g} scan units; written to {out}",
+    )
 
     rem = sub.add_parser(
         "remesh", help="scan + 21 landmarks → base mesh + displacement image (Golovinskiy §2.2)"
@@ -34,25 +40,47 @@ def register(sub: argparse._SubParsersAction) -> None:
         "read with coincident ones merged, as jface.io.read_mesh does); without it they are "
         "found by fitting the built-in face model (as jface landmarks does)",
     )
-    rem.add_argument("--out-dir", required=True, help="output folder")
-    rem.add_argument("--image-size", type=int, default=1024, help="displacement image size")
+    rem.add_argument("--out", required=True, help="output folder")
+    rem.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seeds the surface samples of the landmark search (without --landmarks)",
+    )
+    deprecated_alias(rem, "--out-dir", "--out")
+    rem.add_argument("--image-size", type=int, default=1024, help="displacement image side, pixels")
     rem.add_argument("--linear", type=int, default=2, help="projected linear subdivisions")
     rem.add_argument("--loop", type=int, default=2, help="projected Loop subdivisions")
     rem.add_argument("--smooth", type=int, default=3, help="Loop subdivisions to the base mesh")
     rem.add_argument(
         "--fit", type=int, default=0, help="least-squares fit iterations of the control mesh"
     )
-    rem.add_argument("--method", choices=("auto", "embree", "kdtree"), default="auto")
+    rem.add_argument(
+        "--method",
+        choices=("auto", "embree", "kdtree"),
+        default="auto",
+        help="ray caster: Embree when installed (auto), or a k-d tree of the scan",
+    )
     rem.add_argument("--format", choices=("obj", "ply"), default="obj", help="base mesh format")
-    rem.set_defaults(run=_remesh)
+    rem.set_defaults(
+        run=_remesh,
+        prose="remeshed {scan} in {seconds:.1f} s: base mesh {triangles} triangles, displacement "
+        "{image_size}×{image_size}; hit rates per level {hit_rates}; {missed} base rays missed "
+        "the scan, {filled:.2%} of the image filled (red in filled.png); written to {out}/",
+    )
 
     dis = sub.add_parser("displace", help="base mesh + displacement image → detailed mesh")
     dis.add_argument("base", help="base mesh with uv (from jface remesh)")
     dis.add_argument("disp", help="displacement image (EXR, one channel)")
     dis.add_argument("--out", required=True, help="output mesh (.obj or .ply)")
     dis.add_argument("--extra", type=int, default=0, help="midpoint subdivisions first (0-3)")
-    dis.add_argument("--scale", type=float, default=1.0, help="factor on the displacement")
-    dis.set_defaults(run=_displace)
+    dis.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="factor on the displacement (scan units per map unit)",
+    )
+    dis.set_defaults(run=_displace, prose="wrote {out}: {triangles} triangles")
 
 
 def _face_pose(face) -> np.ndarray:
@@ -123,12 +151,12 @@ def write_face(out: Path, face, meta: dict, fmt: str, protect=()) -> None:
     io.save_arrays(out / "hierarchy.npz", arrays, meta, kind="MeshHierarchy", protect=protect)
 
 
-def _remesh(args: argparse.Namespace) -> None:
-    check_face_outputs(Path(args.out_dir), args.format)
+def _remesh(args: argparse.Namespace) -> dict:
+    check_face_outputs(Path(args.out), args.format)
     scan = io.read_mesh(args.scan)
     if args.landmarks is None:
         start = time.perf_counter()
-        found = mesh.find_landmarks(scan.vertices, scan.faces)
+        found = mesh.find_landmarks(scan.vertices, scan.faces, key=jax.random.key(args.seed))
         marks = found.as_dict()
         print(
             f"no --landmarks: found the 21 landmarks by fitting the face model in "
@@ -164,7 +192,7 @@ def _remesh(args: argparse.Namespace) -> None:
         filled_fraction=round(float(np.mean(filled > 0.5)), 5),
         image_convention="row 0 = v 1 (forehead); u left to right = subject's right to left",
     )
-    out = Path(args.out_dir)
+    out = Path(args.out)
     inputs = (args.scan, args.landmarks) if args.landmarks else (args.scan,)
     write_face(out, result, meta, args.format, protect=inputs)
     if args.landmarks is None:
@@ -175,16 +203,19 @@ def _remesh(args: argparse.Namespace) -> None:
     tinted = shaded * (1 - filled[..., None]) + red * filled[..., None]
     io.write_png(out / "filled.png", tinted, metadata=meta)
     missed = int(np.sum(np.asarray(result.missed)))
-    print(
-        f"remeshed {Path(args.scan).name} in {seconds:.1f} s: base mesh "
-        f"{result.base.faces.shape[0]} triangles, displacement {result.image.shape[0]}×"
-        f"{result.image.shape[1]}; hit rates per level {rates}; {missed} base rays missed the "
-        f"scan, {np.mean(filled > 0.5):.2%} of the image filled (red in filled.png); written "
-        f"to {out}/"
-    )
+    return {
+        "out": str(out),
+        "scan": Path(args.scan).name,
+        "seconds": seconds,
+        "triangles": int(result.base.faces.shape[0]),
+        "image_size": int(result.image.shape[0]),
+        "hit_rates": rates,
+        "missed": missed,
+        "filled": float(np.mean(filled > 0.5)),
+    }
 
 
-def _landmarks(args: argparse.Namespace) -> None:
+def _landmarks(args: argparse.Namespace) -> dict:
     io.check_output(args.out, (".json",))
     if args.picture:
         io.check_output(args.picture, (".png",))
@@ -199,12 +230,15 @@ def _landmarks(args: argparse.Namespace) -> None:
         )
         picture = landmark_picture(scan.vertices, scan.faces, found)
         io.write_png(args.picture, picture, metadata=meta, protect=(args.scan,))
-    print(
-        f"found the 21 landmarks of {Path(args.scan).name} in {seconds:.1f} s: fit score "
-        f"{float(found.score):.3f} (0 perfect, 1 nothing fits), {float(found.inliers):.0%} of "
-        f"the face model on the scan, RMS {float(found.rms):.3g} scan units; written to "
-        f"{args.out}" + (f" and {args.picture}" if args.picture else "")
-    )
+    return {
+        "out": args.out,
+        "picture": args.picture,
+        "scan": Path(args.scan).name,
+        "seconds": seconds,
+        "score": float(found.score),
+        "inliers": float(found.inliers),
+        "rms": float(found.rms),
+    }
 
 
 def landmark_picture(vertices, faces, found, size: int = 640) -> np.ndarray:
@@ -249,7 +283,7 @@ def landmark_picture(vertices, faces, found, size: int = 640) -> np.ndarray:
     return picture
 
 
-def _displace(args: argparse.Namespace) -> None:
+def _displace(args: argparse.Namespace) -> dict:
     io.check_output(args.out, (".obj", ".ply"))
     base = io.read_mesh(args.base, merge=False)
     if base.uv is None:
@@ -264,7 +298,7 @@ def _displace(args: argparse.Namespace) -> None:
         comment=f"jface displace {Path(args.base).name} {Path(args.disp).name}",
         protect=(args.base, args.disp),
     )
-    print(f"wrote {args.out}: {result.faces.shape[0]} triangles")
+    return {"out": args.out, "triangles": int(result.faces.shape[0])}
 
 
 def demo(out: Path, seed: int) -> None:

@@ -11,7 +11,6 @@ mean (``--global mean``). ``restyle`` needs a bilinear model.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import jax
@@ -23,19 +22,39 @@ from jface import faces, io
 from jface.faces import _editing, _patches, _quilting
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+#: Default width of a figure of faces, in pixels: small aligned faces (25 px) are enlarged to it.
+FIGURE_SIDE = 512
 
 
 def _library_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("images", nargs="+", help="aligned training faces: image files or folders")
     p.add_argument("--grey", action="store_true", help="read the faces as greyscale")
-    p.add_argument("--grid", type=int, default=9, help="patches per side (default 9)")
+    p.add_argument(
+        "--grid",
+        type=int,
+        default=None,
+        help=f"patches per side (default: {_patches.GRID}, or the finest grid below it that "
+        "fits the faces' size)",
+    )
+    p.add_argument(
+        "--upscale",
+        type=int,
+        default=None,
+        help="pixel-repeat factor of the figures (default: the smallest that makes them "
+        f"{FIGURE_SIDE} pixels or more across; the face PNGs keep their size)",
+    )
     p.add_argument("--patch", type=int, default=None, help="patch size (default: quarter overlap)")
-    p.add_argument("--translations", type=int, default=1, help="largest patch shift, px")
+    p.add_argument("--translations", type=int, default=1, help="largest patch shift, pixels")
     p.add_argument(
         "--angles", type=float, nargs="*", default=[-3.0, 3.0], help="patch rotations, degrees"
     )
-    p.add_argument("--lam", type=float, default=_quilting.LAM, help="target weight λ")
-    p.add_argument("--n-best", type=int, default=None, help="choose among the N best patches")
+    p.add_argument("--lam", type=float, default=_quilting.LAM, help="weight λ of the global target")
+    p.add_argument(
+        "--n-best",
+        type=int,
+        default=None,
+        help="choose among the N best patches (default: the best one)",
+    )
     p.add_argument("--no-symmetry", action="store_true", help="no left/right source constraint")
     p.add_argument(
         "--seed",
@@ -54,13 +73,23 @@ def add_actions(actions: argparse._SubParsersAction, sample_name: str = "sample"
     )
     _library_args(sample)
     sample.add_argument("--n", type=int, default=16, help="number of faces (default 16)")
-    sample.add_argument("--global", dest="global_model", choices=("pca", "mean"), default="pca")
+    sample.add_argument(
+        "--global",
+        dest="global_model",
+        choices=("pca", "mean"),
+        default="pca",
+        help="global targets: PCA samples or the mean face",
+    )
     sample.add_argument(
         "--model", help="global model file (factor analyser or mixture, .npz); overrides --global"
     )
     sample.add_argument("--components", type=int, default=8, help="PCA components (default 8)")
     sample.add_argument("--no-blend", action="store_true", help="skip the Poisson blending")
-    sample.set_defaults(run=_sample)
+    sample.set_defaults(
+        run=_sample,
+        prose="wrote {faces} faces to {out}/ (median distance to the nearest training face "
+        "{nn_median:.3f}; training faces to each other {median_nn_distance_training:.3f})",
+    )
 
     inpaint = actions.add_parser("inpaint", help="replace a masked region of a face (§6.1)")
     _library_args(inpaint)
@@ -69,13 +98,13 @@ def add_actions(actions: argparse._SubParsersAction, sample_name: str = "sample"
     inpaint.add_argument("--n", type=int, default=4, help="number of hypotheses (default 4)")
     inpaint.add_argument("--components", type=int, default=8, help="PCA components (default 8)")
     inpaint.add_argument("--model", help="global model file (.npz): posterior targets")
-    inpaint.set_defaults(run=_inpaint)
+    inpaint.set_defaults(run=_inpaint, prose="wrote {hypotheses} hypotheses to {out}/")
 
     edit = actions.add_parser("edit", help="turn a painted edit into realistic texture (§6.2)")
     _library_args(edit)
     edit.add_argument("--image", required=True, help="the face before the edit")
     edit.add_argument("--painted", required=True, help="the same face with painted strokes")
-    edit.set_defaults(run=_edit, lam=_editing.GUIDE_LAM)
+    edit.set_defaults(run=_edit, lam=_editing.GUIDE_LAM, prose="wrote {out}/edited.png")
 
     restyle = actions.add_parser(
         "restyle", help="change a face's style (expression) with a bilinear model (§6.3)"
@@ -86,7 +115,7 @@ def add_actions(actions: argparse._SubParsersAction, sample_name: str = "sample"
     restyle.add_argument("--mask", help="mask image: white where to restyle (default: all)")
     restyle.add_argument("--source", type=int, default=0, help="style of the face (default 0)")
     restyle.add_argument("--target", type=int, default=1, help="style wanted (default 1)")
-    restyle.set_defaults(run=_restyle)
+    restyle.set_defaults(run=_restyle, prose="wrote {out}/restyled.png")
 
 
 # --- helpers ------------------------------------------------------------------------------------
@@ -132,9 +161,38 @@ def read_faces(names: list[str], grey: bool) -> tuple[np.ndarray, list[Path]]:
     return np.stack(images).astype(np.float32), files
 
 
+def enlarge(figure: np.ndarray, upscale: int | None) -> np.ndarray:
+    """``figure`` with every pixel repeated ``upscale`` times along both axes (default: the
+    smallest factor that makes it :data:`FIGURE_SIDE` pixels or more across)."""
+    if upscale is None:
+        upscale = -(-FIGURE_SIDE // max(figure.shape[:2]))
+    return np.repeat(np.repeat(figure, upscale, axis=0), upscale, axis=1)
+
+
+def _grid(args: argparse.Namespace, shape: tuple[int, int]) -> int:
+    """``--grid``, or the finest grid up to the default that fits faces of ``shape``."""
+    if args.grid is not None:
+        return args.grid
+    for grid in range(_patches.GRID, 1, -1):
+        try:
+            _patches.make_geometry(shape, grid, args.patch)
+        except ValueError:
+            continue
+        if grid != _patches.GRID:
+            print(f"--grid {grid}: the finest grid that fits {shape[1]}×{shape[0]} px faces")
+        return grid
+    raise ValueError(f"no patch grid fits {shape[1]}×{shape[0]} px faces; give --grid and --patch")
+
+
 def _library(args: argparse.Namespace, images: np.ndarray) -> faces.PatchLibrary:
+    if args.upscale is not None and args.upscale < 1:  # refused before the work, not after
+        raise ValueError(f"--upscale must be at least 1, got {args.upscale}")
     library = faces.build_library(
-        images, args.grid, patch=args.patch, translations=args.translations, angles=args.angles
+        images,
+        _grid(args, images.shape[1:3]),
+        patch=args.patch,
+        translations=args.translations,
+        angles=args.angles,
     )
     print(_patches.describe_library(library))
     return library
@@ -201,8 +259,13 @@ def _check_outputs(out: Path, names) -> None:
         io.check_output(out / name, (".png", ".json"))
 
 
-def _sample(args: argparse.Namespace) -> np.ndarray:
-    """Synthesise ``--n`` faces, write them, and return them ``(n, H, W[, C])``."""
+def _sample(args: argparse.Namespace) -> dict:
+    return sample_faces(args)[1]
+
+
+def sample_faces(args: argparse.Namespace) -> tuple[np.ndarray, dict]:
+    """Synthesise ``--n`` faces, write them, and return them ``(n, H, W[, C])`` with the
+    summary."""
     if args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
     faces_out = [f"face_{i:03d}.png" for i in range(args.n)]
@@ -225,18 +288,17 @@ def _sample(args: argparse.Namespace) -> np.ndarray:
         for k, t in tqdm(zip(keys, targets, strict=True), total=args.n, desc="quilt", unit="face")
     ]
     result = jax.tree.map(lambda *xs: jnp.stack(xs), *made)
-    _write_samples(args, images, library, files, result, targets, settings)
-    return np.asarray(result.image)
+    summary = _write_samples(args, images, library, files, result, targets, settings)
+    return np.asarray(result.image), summary
 
 
 def _load_model(path: str):
     if not hasattr(faces, "load_model"):
         raise ValueError("--model needs the factor models of jface.faces, not in this copy")
-    model, _ = faces.load_model(path)
-    return model
+    return faces.load_model(path).model
 
 
-def _sample_from_model(args, images, library, files) -> np.ndarray:
+def _sample_from_model(args, images, library, files) -> tuple[np.ndarray, dict]:
     model = _load_model(args.model)
     assignment = None
     if hasattr(model, "n_components"):
@@ -251,26 +313,35 @@ def _sample_from_model(args, images, library, files) -> np.ndarray:
     ]
     result = jax.tree.map(lambda *xs: jnp.stack(xs), *[m[0] for m in made])
     targets = np.stack([np.asarray(m[1]) for m in made])
-    _write_samples(args, images, library, files, result, targets, settings)
-    return np.asarray(result.image)
+    summary = _write_samples(args, images, library, files, result, targets, settings)
+    return np.asarray(result.image), summary
 
 
-def _write_samples(args, images, library, files, result, targets, settings) -> None:
+def _write_samples(args, images, library, files, result, targets, settings) -> dict:
     out = Path(args.out)
     meta = io.provenance(seed=args.seed, training=len(files), **settings)
     smaps = np.asarray(faces.source_map(result, library))
     for i in range(args.n):
         io.write_png(out / f"face_{i:03d}.png", np.asarray(result.image[i]), metadata=meta)
-    io.write_png(out / "faces.png", montage(np.asarray(result.image)), metadata=meta)
-    io.write_png(out / "targets.png", montage(targets), metadata=meta)
-    io.write_png(out / "quilted.png", montage(np.asarray(result.quilted)), metadata=meta)
-    io.write_png(out / "sources.png", montage(colour_sources(smaps)), metadata=meta)
+    io.write_png(
+        out / "faces.png", enlarge(montage(np.asarray(result.image)), args.upscale), metadata=meta
+    )
+    io.write_png(out / "targets.png", enlarge(montage(targets), args.upscale), metadata=meta)
+    io.write_png(
+        out / "quilted.png",
+        enlarge(montage(np.asarray(result.quilted)), args.upscale),
+        metadata=meta,
+    )
+    io.write_png(
+        out / "sources.png", enlarge(montage(colour_sources(smaps)), args.upscale), metadata=meta
+    )
     nearest = [faces.nearest_training(result.image[i], images)[1] for i in range(args.n)]
     summary = {
         "out": str(out),
         "faces": args.n,
         "median_nn_distance_training": float(np.median(faces.training_nn_distances(images))),
         "nn_distance": [round(float(d), 4) for d in nearest],
+        "nn_median": float(np.median(nearest)),
         "target_distance": [
             round(float(faces.target_distance(result.image[i], targets[i])), 4)
             for i in range(args.n)
@@ -278,7 +349,7 @@ def _write_samples(args, images, library, files, result, targets, settings) -> N
         "distinct_sources": [int(np.unique(s[s >= 0]).size) for s in np.asarray(result.sources)],
     }
     io.write_json(out / "summary.json", summary)
-    print(json.dumps(summary))
+    return summary
 
 
 def _read_mask(path: str, shape: tuple[int, int]) -> np.ndarray:
@@ -297,7 +368,7 @@ def _one_face(path: str, images: np.ndarray, grey: bool, name: str) -> np.ndarra
     return face
 
 
-def _inpaint(args: argparse.Namespace) -> None:
+def _inpaint(args: argparse.Namespace) -> dict:
     if args.n < 1:
         raise ValueError(f"--n must be at least 1, got {args.n}")
     names = [f"inpainted_{i:03d}.png" for i in range(args.n)]
@@ -332,11 +403,15 @@ def _inpaint(args: argparse.Namespace) -> None:
     for i in range(args.n):
         io.write_png(out / f"inpainted_{i:03d}.png", np.asarray(result.image[i]), metadata=meta)
     panel = np.concatenate([face[None], holed[None], target[None], np.asarray(result.image)])
-    io.write_png(out / "inpainting.png", montage(panel, columns=len(panel)), metadata=meta)
-    print(json.dumps({"out": str(out), "hypotheses": args.n, "training": len(files)}))
+    io.write_png(
+        out / "inpainting.png",
+        enlarge(montage(panel, columns=len(panel)), args.upscale),
+        metadata=meta,
+    )
+    return {"out": str(out), "hypotheses": args.n, "training": len(files)}
 
 
-def _edit(args: argparse.Namespace) -> None:
+def _edit(args: argparse.Namespace) -> dict:
     _check_outputs(Path(args.out), ("edited.png", "edit.png"))
     images, _ = read_faces(args.images, args.grey)
     face = _one_face(args.image, images, args.grey, "--image")
@@ -355,11 +430,11 @@ def _edit(args: argparse.Namespace) -> None:
     meta = io.provenance(seed=args.seed, image=Path(args.image).name, lam=args.lam)
     io.write_png(out / "edited.png", np.asarray(result.image), metadata=meta)
     panel = np.stack([face, painted, np.asarray(result.image)])
-    io.write_png(out / "edit.png", montage(panel, columns=3), metadata=meta)
-    print(json.dumps({"out": str(out)}))
+    io.write_png(out / "edit.png", enlarge(montage(panel, columns=3), args.upscale), metadata=meta)
+    return {"out": str(out)}
 
 
-def _restyle(args: argparse.Namespace) -> None:
+def _restyle(args: argparse.Namespace) -> dict:
     _check_outputs(Path(args.out), ("restyled.png", "restyle.png"))
     images, _ = read_faces(args.images, args.grey)
     face = _one_face(args.image, images, args.grey, "--image")
@@ -379,8 +454,10 @@ def _restyle(args: argparse.Namespace) -> None:
     meta = io.provenance(seed=args.seed, image=Path(args.image).name, model=Path(args.model).name)
     io.write_png(out / "restyled.png", np.asarray(result.image), metadata=meta)
     panel = np.stack([face, np.asarray(prediction), np.asarray(result.image)])
-    io.write_png(out / "restyle.png", montage(panel, columns=3), metadata=meta)
-    print(json.dumps({"out": str(out)}))
+    io.write_png(
+        out / "restyle.png", enlarge(montage(panel, columns=3), args.upscale), metadata=meta
+    )
+    return {"out": str(out)}
 
 
 def demo(out: Path, seed: int) -> None:

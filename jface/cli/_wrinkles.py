@@ -4,16 +4,21 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import sys
 import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
+from jface.cli import _fit, deprecated_alias
 from jface.io import (
     check_output,
     exr_rows,
+    load_arrays,
     provenance,
     read_json,
     read_map,
@@ -26,8 +31,12 @@ from jface.io import (
 )
 from jface.render import shade
 from jface.wrinkles import (
+    PoreGraph,
+    Pores,
+    Simulated,
     WrinkleParams,
     blend_with_scan,
+    draw_simulated,
     extract_orientation,
     find_pores,
     load_params,
@@ -35,13 +44,17 @@ from jface.wrinkles import (
     radius_map_from_mesh,
     save_params,
     simulate_levels,
-    synthesize,
     synthesize_bands,
 )
 
 #: α_s and α_scale of the levels made without --params, coarse to fine
 LEVEL_S, LEVEL_SCALE = (0.05, 0.15, 0.3, 0.5), (0.6, 0.35, 0.2, 0.12)
 _OVERRIDES = ("d", "theta", "s", "dist", "cont", "sim", "cross", "deposit", "decay")
+_UNITS = {"d": ", unit-square units", "theta": ", radians"}
+_FIELDS = {
+    name: [f.name for f in dataclasses.fields(kind) if f.name != "periodic"]
+    for name, kind in (("pores", Pores), ("graph", PoreGraph))
+}
 BANDED_ABOVE = 4096  #: maps with more rows are drawn and written band by band (bounded memory)
 _PREVIEW = 2048  # side of the PNG / mesh preview of a banded map
 _RADIUS_SIDE = 1024  # radius maps from a mesh's UV stretch are smooth: this resolution suffices
@@ -59,7 +72,10 @@ def register(subparsers) -> None:
     sim.add_argument("--params", help="JSON file of WrinkleParams levels (coarse to fine)")
     for name in _OVERRIDES:
         sim.add_argument(
-            f"--{name}", type=float, help=f"override α_{name} on every level (Table 1 range)"
+            f"--{name}",
+            type=float,
+            help=f"override α_{name} on every level (Table 1 range{_UNITS.get(name, '')}) "
+            "(default: the levels' own)",
         )
     sim.add_argument("--levels", type=int, default=1, help="levels when no --params (α_d halves)")
     sim.add_argument("--radius-map", help="EXR radius scaling map R (single channel, > 0)")
@@ -68,16 +84,24 @@ def register(subparsers) -> None:
                      help="simulation steps per level (default: until converged)")  # fmt: skip
     sim.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, |E|))")
     sim.add_argument("--k", type=int, default=6, help="nearest neighbours per pore")
-    sim.add_argument("--size", type=int, default=1024, help="PNG size in pixels")
+    sim.add_argument("--size", type=int, default=1024, help="PNG side, pixels")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    sim.set_defaults(run=_simulate)
+    sim.set_defaults(run=_simulate, prose="wrinkles: {counts} in {seconds:.1f} s → {out}/")
 
     ren = sub.add_parser(
         "render",
         help="simulate and draw a multi-level micro-wrinkle displacement map (EXR + shaded PNG), "
         "optionally blended with a scan's displacement and applied to a mesh",
     )
-    ren.add_argument("--params", required=True, help="JSON file of WrinkleParams levels")
+    ren.add_argument(
+        "--params", help="JSON file of WrinkleParams levels (required without --simulation)"
+    )
+    ren.add_argument(
+        "--simulation",
+        metavar="DIR",
+        help="folder written by 'jface wrinkles simulate': draw its levels, pores and weights "
+        "(with its seed) instead of simulating again",
+    )
     ren.add_argument("--out", required=True, help="output EXR (PNG and mesh beside it)")
     ren.add_argument("--size", type=int, default=1024, help="map side in pixels (16 to 16384; "
                      f"above {BANDED_ABOVE} drawn and written band by band)")  # fmt: skip
@@ -96,7 +120,10 @@ def register(subparsers) -> None:
     ren.add_argument("--steps", type=int,
                      help="simulation steps per level (default: until converged)")  # fmt: skip
     ren.add_argument("--samples", type=int, help="pores sampled per step (default min(50000, |E|))")
-    ren.set_defaults(run=_render)
+    ren.set_defaults(
+        run=_render,
+        prose="wrinkles render: {pores} pores per level; {size}² in {seconds:.1f} s → {out}",
+    )
 
     ext = sub.add_parser(
         "extract",
@@ -104,14 +131,24 @@ def register(subparsers) -> None:
     )
     ext.add_argument("coarse", help="coarse displacement map (single-channel EXR, .npy, PNG)")
     ext.add_argument("--out", required=True, help="output WrinkleParams JSON (θ texture)")
-    ext.add_argument("--pores-out", help="pores JSON (default: beside --out)")
+    deprecated_alias(ext, "--pores-out", "--out (the pores JSON is written beside it)",
+                     dest="pores_out", default=None)  # fmt: skip
     ext.add_argument("--crop", type=int, default=128, help="crop side in pixels (default 128)")
-    ext.add_argument("--frequency", type=float, default=0.2, help="Gabor cycles per pixel")
+    ext.add_argument(
+        "--frequency", type=float, default=0.2, help="Gabor frequency, cycles per pixel"
+    )
     ext.add_argument(
         "--threshold", type=float, default=1.0, help="pore depth threshold (high-pass std units)"
     )
-    ext.add_argument("--d", type=float, default=0.01, help="α_d of the written level")
-    ext.set_defaults(run=_extract)
+    ext.add_argument(
+        "--d", type=float, default=0.01, help="α_d of the written level, unit-square units"
+    )
+    ext.set_defaults(
+        run=_extract,
+        prose="wrinkles extract: {rows}×{columns} orientations, {pores} pores in {seconds:.1f} s "
+        "→ {out}, {pores_out}",
+    )
+    _fit.register(sub)
 
 
 def _levels(args) -> list[WrinkleParams]:
@@ -162,7 +199,7 @@ def draw_graph(results, size: int, periodic: bool) -> np.ndarray:
     return 1.0 - np.clip(ink, 0.0, 1.0)
 
 
-def _simulate(args: argparse.Namespace) -> None:
+def _simulate(args: argparse.Namespace) -> dict:
     out = Path(args.out)
     if (args.steps is not None and args.steps < 0) or args.size < 16:
         raise ValueError("--steps must be ≥ 0 and --size ≥ 16")
@@ -184,6 +221,11 @@ def _simulate(args: argparse.Namespace) -> None:
         arrays[f"level{i}_edge_nodes"] = np.asarray(graph.edge_nodes)[:e]
         arrays[f"level{i}_edge_delta"] = np.asarray(graph.edge_delta)[:e]
         arrays[f"level{i}_weights"] = np.asarray(weights)[:e]
+        # the whole graph, padding included, so that 'render --simulation' can draw it
+        arrays[f"level{i}_weights_all"] = np.asarray(weights)
+        for prefix, item in (("pores", pores), ("graph", graph)):
+            for field in _FIELDS[prefix]:
+                arrays[f"level{i}_{prefix}_{field}"] = np.asarray(getattr(item, field))
     meta = provenance(
         seed=args.seed,
         levels=[p.to_dict() for p in levels],
@@ -197,10 +239,10 @@ def _simulate(args: argparse.Namespace) -> None:
     picture = draw_graph(results, args.size, args.periodic)
     write_png(out / "wrinkles.png", picture, metadata=meta)
     counts = ", ".join(f"{int(r[0].count)} pores/{int(r[1].edge_count)} edges" for r in results)
-    print(f"wrinkles: {counts} in {time.perf_counter() - start:.1f} s → {out}/")
+    return {"out": str(out), "counts": counts, "seconds": time.perf_counter() - start}
 
 
-def _render(args: argparse.Namespace) -> None:
+def _render(args: argparse.Namespace) -> dict:
     if not 16 <= args.size <= 16384:
         raise ValueError(f"--size must be in [16, 16384], got {args.size}")
     if (args.steps is not None and args.steps < 0) or not args.depth > 0:
@@ -209,7 +251,19 @@ def _render(args: argparse.Namespace) -> None:
     check_output(out.with_suffix(".png"), (".png",))
     if args.mesh:
         check_output(out.with_suffix(".obj"), (".obj",))
-    levels = load_params(args.params)
+    if (args.params is None) == (args.simulation is None):
+        raise ValueError("give --params (simulate here) or --simulation (reuse a simulation)")
+    if args.simulation:
+        clash = [f"--{n}" for n in ("pores", "mesh", "steps", "samples") if getattr(args, n)]
+        if clash or args.size > BANDED_ABOVE:
+            raise ValueError(
+                f"--simulation draws a finished simulation: {clash or '--size above 4096'} "
+                "does not go with it"
+            )
+        levels, simulated, sim_meta = _read_simulation(args.simulation)
+        args.seed, args.periodic = int(sim_meta["seed"]), bool(sim_meta["periodic"])
+    else:
+        levels = load_params(args.params)
     base = read_map(args.base) if args.base else None
     if base is not None and base.shape != (args.size, args.size):
         raise ValueError(f"--base is {base.shape}, expected ({args.size}, {args.size}) (--size)")
@@ -231,11 +285,15 @@ def _render(args: argparse.Namespace) -> None:
                n_steps=args.steps, n_samples=args.samples, progress=True)  # fmt: skip
     key = jax.random.key(args.seed)
     shape = (args.size, args.size)
+    if args.simulation:
+        meta["simulation"] = str(args.simulation)
     if args.size > BANDED_ABOVE:
         counts, preview = _render_bands(key, levels, shape, base, out, meta, run)
     else:
-        with tqdm(total=1, desc="simulate + draw", leave=False):
-            syn = synthesize(key, levels, shape, **run)
+        if not args.simulation:  # the simulation shows its own progress
+            simulated = simulate_levels(key, levels, **run)
+        print(f"drawing {len(levels)} level(s) at {args.size}²…", file=sys.stderr)
+        syn = draw_simulated(key, levels, simulated, shape)
         disp = syn.displacement if base is None else blend_with_scan(base, syn.displacement)
         preview = np.asarray(disp)
         write_exr(out, preview, metadata=meta)
@@ -250,8 +308,35 @@ def _render(args: argparse.Namespace) -> None:
         comment = f"jface {meta['jface_version']} wrinkles render, seed {args.seed}"
         write_mesh(out.with_suffix(".obj"), np.asarray(moved.vertices), np.asarray(moved.faces),
                    uv=np.asarray(moved.uv), comment=comment)  # fmt: skip
-    pores = ", ".join(f"{n} pores" for n in counts)
-    print(f"wrinkles render: {pores}; {args.size}² in {time.perf_counter() - start:.1f} s → {out}")
+    return {
+        "out": str(out),
+        "pores": counts,
+        "size": args.size,
+        "seconds": time.perf_counter() - start,
+    }
+
+
+def _read_simulation(folder: str):
+    """Levels, simulated graphs and weights, and the provenance of a ``wrinkles simulate``
+    folder."""
+    arrays, meta = load_arrays(Path(folder) / "wrinkles.npz", kind="WrinkleGraph")
+    levels = load_params(Path(folder) / "params.json")
+    simulated = []
+    periodic = bool(meta["periodic"])
+    for i in range(len(levels)):
+        parts = {}
+        for prefix, kind in (("pores", Pores), ("graph", PoreGraph)):
+            fields = {f: arrays.get(f"level{i}_{prefix}_{f}") for f in _FIELDS[prefix]}
+            if any(v is None for v in fields.values()):
+                raise ValueError(
+                    f"{folder}/wrinkles.npz holds no drawable level {i} (written by an older "
+                    "jface?): simulate again"
+                )
+            parts[prefix] = kind(**{f: jnp.asarray(v) for f, v in fields.items()},
+                                 periodic=periodic)  # fmt: skip
+        weights = jnp.asarray(arrays[f"level{i}_weights_all"])
+        simulated.append(Simulated(parts["pores"], parts["graph"], weights))
+    return levels, simulated, meta
 
 
 def _render_bands(key, levels, shape, base, out, meta, run):
@@ -299,7 +384,7 @@ def _read_pores(path, periodic):
     return make_pores(positions.astype(np.float32), periodic=periodic)
 
 
-def _extract(args: argparse.Namespace) -> None:
+def _extract(args: argparse.Namespace) -> dict:
     out = check_output(args.out, (".json",))
     pores_out = Path(args.pores_out) if args.pores_out else out.with_name(out.stem + "_pores.json")
     check_output(pores_out, (".json",))
@@ -317,9 +402,21 @@ def _extract(args: argparse.Namespace) -> None:
          **provenance(source=str(args.coarse), crop=args.crop, frequency=args.frequency,
                       threshold=args.threshold)},
     )  # fmt: skip
+    if n == 0:
+        print(
+            f"jface wrinkles extract: warning: no pores found on {args.coarse} (none deeper than "
+            f"--threshold {args.threshold} high-pass std); try a lower --threshold",
+            file=sys.stderr,
+        )
     gy, gx = orient.theta.shape
-    print(f"wrinkles extract: {gy}×{gx} orientations, {n} pores in "
-          f"{time.perf_counter() - start:.1f} s → {out}, {pores_out}")  # fmt: skip
+    return {
+        "out": str(out),
+        "pores_out": str(pores_out),
+        "rows": int(gy),
+        "columns": int(gx),
+        "pores": n,
+        "seconds": time.perf_counter() - start,
+    }
 
 
 def demo(out_dir: Path, seed: int) -> None:

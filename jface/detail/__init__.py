@@ -48,6 +48,7 @@ from jface.detail._meshes import (
 from jface.detail._population import Population
 from jface.detail._stats import (
     DetailStats,
+    SavedStats,
     analyze,
     analyze_like,
     load_stats,
@@ -68,6 +69,7 @@ __all__ = [
     "GroupComparison",
     "Interpolation",
     "Population",
+    "SavedStats",
     "add_detail",
     "age",
     "analyze",

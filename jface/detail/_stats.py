@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import os
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -337,10 +337,18 @@ def save_stats(
     )
 
 
-def load_stats(path: str | os.PathLike) -> tuple[DetailStats, dict[str, Any]]:
-    """Load statistics saved by :func:`save_stats`; returns ``(stats, metadata)``."""
+class SavedStats(NamedTuple):
+    """Statistics read back by :func:`load_stats`, with the metadata saved beside them
+    (provenance: jface version, source map, settings such as the pyramid boundary)."""
+
+    stats: DetailStats
+    metadata: dict[str, Any]
+
+
+def load_stats(path: str | os.PathLike) -> SavedStats:
+    """Load statistics saved by :func:`save_stats`, with their metadata."""
     arrays, meta = io.load_arrays(path, kind="DetailStats")
-    return stats_from_arrays(arrays, meta, path), meta
+    return SavedStats(stats_from_arrays(arrays, meta, path), meta)
 
 
 def stack_stats(items: list[DetailStats]) -> DetailStats:

@@ -147,7 +147,7 @@ def _synthesize(key, start, target, noise, settings):
     filters = pyramid.make_filters(
         padded.shape, n_scales, n_orientations, jnp.dtype(start.dtype).name
     )
-    *_, lowpass = pyramid.analyse_spectrum(filters, jnp.fft.rfft2(padded))  # the start's, kept
+    *_, lowpass = pyramid.analyze_spectrum(filters, jnp.fft.rfft2(padded))  # the start's, kept
     # Noise as strong as the detail each tile should have: a flat tile beside a rough one starts
     # near its target instead of having to shed noise it cannot (leakage from its neighbours).
     local = jnp.sqrt(tiles.blend(target.tile_energy(), start.shape))
@@ -171,7 +171,7 @@ def _synthesize(key, start, target, noise, settings):
         return coefficients.at[top : top + h, left : left + w].set(match(valid, b))
 
     def step(spectrum):
-        highpass, bands, _ = pyramid.analyse_spectrum(filters, spectrum)
+        highpass, bands, _ = pyramid.analyze_spectrum(filters, spectrum)
         highpass = match_valid(highpass, -1, 0)
         matched = []
         for s, band in enumerate(bands):
@@ -179,7 +179,7 @@ def _synthesize(key, start, target, noise, settings):
             matched.append(
                 jnp.stack([match_valid(band[o], s, first + o) for o in range(n_orientations)])
             )
-        spectrum = pyramid.synthesise_spectrum(filters, highpass, tuple(matched), lowpass)
+        spectrum = pyramid.synthesize_spectrum(filters, highpass, tuple(matched), lowpass)
         if any(pad):  # re-impose the mirror boundary on the new image
             spectrum = jnp.fft.rfft2(pyramid.pad_image(crop(spectrum), pad))
         return spectrum
@@ -194,7 +194,7 @@ def _synthesize(key, start, target, noise, settings):
 def _log_errors(image, target, filters, pad):
     """``log(σ / τ)`` of every tile and band (deviations below the floor count as the floor)."""
     padded = pyramid.pad_image(image, pad)
-    highpass, bands, _ = pyramid.analyse_spectrum(filters, jnp.fft.rfft2(padded))
+    highpass, bands, _ = pyramid.analyze_spectrum(filters, jnp.fft.rfft2(padded))
     coefficients = [(highpass, -1)] + [
         (b[o], s) for s, b in enumerate(bands) for o in range(len(b))
     ]
@@ -235,7 +235,7 @@ def _polish(image, target, pad, n_steps):
         return jnp.pad(field, ((top, bottom), (left, right)), mode="edge")
 
     def polish_round(start, n):
-        highpass, bands, lowpass = pyramid.analyse_spectrum(
+        highpass, bands, lowpass = pyramid.analyze_spectrum(
             filters, jnp.fft.rfft2(pyramid.pad_image(start, pad))
         )
         scales = [amplitude(highpass, -1)] + [
@@ -244,9 +244,9 @@ def _polish(image, target, pad, n_steps):
 
         def move(y):
             spectrum = jnp.fft.rfft2(pyramid.pad_image(y, pad))
-            high, parts, _ = pyramid.analyse_spectrum(filters, spectrum)
+            high, parts, _ = pyramid.analyze_spectrum(filters, spectrum)
             parts = tuple(p * d for p, d in zip(parts, scales[1:], strict=True))
-            spectrum = pyramid.synthesise_spectrum(
+            spectrum = pyramid.synthesize_spectrum(
                 filters, high * scales[0], parts, jnp.zeros_like(lowpass)
             )
             moved = jnp.fft.irfft2(spectrum, s=padded)

@@ -64,7 +64,7 @@ from jface.faces._mofa import MixtureOfFactorAnalysers, MixturePosterior
 from jface.faces._patches import Geometry, PatchLibrary, build_library, make_geometry
 from jface.faces._poisson import divergence, gradients, poisson_blend, poisson_solve
 from jface.faces._quilting import QuiltResult, quilt
-from jface.faces._store import load_model, save_model
+from jface.faces._store import SavedModel, load_model, save_model
 
 __all__ = [
     "Alignment",
@@ -77,6 +77,7 @@ __all__ = [
     "PatchLibrary",
     "Posterior",
     "QuiltResult",
+    "SavedModel",
     "align",
     "assign_components",
     "build_library",

@@ -283,8 +283,32 @@ def _prepare(model: Any, x: ArrayLike, mask: ArrayLike | None) -> tuple[Array, A
     return image_vector(x, model.shape, "x", dtype), mask_vector(mask, model.shape, dtype)
 
 
-def log_likelihood(model: Any, x: ArrayLike, mask: ArrayLike | None = None) -> Float[Array, ""]:
-    """log p(x) of one image (of its observed pixels, with ``mask``), in nats.
+def _batch_shape(model: Any, x: ArrayLike) -> tuple[int, ...]:
+    """The leading axes of ``x`` before one image (of the model's shape, or flattened)."""
+    shape, dims = tuple(model.shape), tuple(np.shape(x))
+    if len(dims) > len(shape) and dims[len(dims) - len(shape) :] == shape:
+        return dims[: len(dims) - len(shape)]
+    if len(dims) > 1 and dims[-1] == math.prod(shape) and len(shape) > 1:
+        return dims[:-1]
+    return ()  # one image (or a shape that image_vector refuses by name)
+
+
+def _per_image(one, model: Any, x: ArrayLike, mask: ArrayLike | None):
+    """``one(x_flat, mask_flat)`` on an image, or mapped over the leading axes of a batch with
+    the mask shared, the results given the batch's leading axes."""
+    check_model(model, kinds=_IMAGE_MODELS)
+    batch = _batch_shape(model, x)
+    if not batch:
+        return one(*_prepare(model, x, mask))
+    dtype = model.factors.dtype
+    flat = _checks.float_array(x, "x", dtype=dtype).reshape(-1, math.prod(model.shape))
+    out = jax.vmap(one, in_axes=(0, None))(flat, mask_vector(mask, model.shape, dtype))
+    return jax.tree.map(lambda a: a.reshape(*batch, *a.shape[1:]), out)
+
+
+def log_likelihood(model: Any, x: ArrayLike, mask: ArrayLike | None = None) -> Float[Array, "*b"]:
+    """log p(x) of an image (of its observed pixels, with ``mask``), in nats; of every image of
+    a batch ``(*b, *shape)`` at once (as scikit-learn's ``score_samples``).
 
     For a factor analyser ``log N(x; μ, F Fᵀ + Σ)`` by the determinant lemma and Woodbury
     (``O(d q²)``, no ``d × d`` matrix; under ``vmap`` with a shared mask the ``q × q`` system is
@@ -292,23 +316,29 @@ def log_likelihood(model: Any, x: ArrayLike, mask: ArrayLike | None = None) -> F
 
     Args:
         model: :class:`FactorAnalyser` or :class:`MixtureOfFactorAnalysers`.
-        x: one image of the model's shape (or flattened).
-        mask: optional boolean, the image's shape, True where observed (default: all).
+        x: one image of the model's shape (or flattened), or a batch ``(*b, *shape)`` (or
+            ``(*b, d)``).
+        mask: optional boolean, the image's shape, True where observed (default: all); one
+            mask for every image of a batch.
+
+    Returns:
+        ``(*b,)`` log-likelihoods (a scalar for one image).
 
     Raises:
         TypeError, ValueError: wrong model type, shape mismatch, NaN, a mask without any
             observed pixel.
     """
-    xv, m = _prepare(model, x, mask)
     if isinstance(model, FactorAnalyser):
-        return fa_log_likelihood_flat(model, xv, m)
-    return mofa_log_likelihood(model, xv, m)
+        return _per_image(lambda xv, m: fa_log_likelihood_flat(model, xv, m), model, x, mask)
+    return _per_image(lambda xv, m: mofa_log_likelihood(model, xv, m), model, x, mask)
 
 
 def posterior(
     model: Any, x: ArrayLike, mask: ArrayLike | None = None, *, form: Form = "exact"
 ) -> Posterior | MixturePosterior:
-    """Posterior over the factor loadings of one image, from its observed pixels (§6.1).
+    """Posterior over the factor loadings of an image, from its observed pixels (§6.1); for a
+    batch ``(*b, *shape)`` (or ``(*b, d)``) of images and one shared mask, every field gains the
+    leading axes ``b``.
 
     ``form="exact"`` (default) is the Bayesian posterior under the ``N(0, I)`` prior of Eq. 3:
 
@@ -327,7 +357,8 @@ def posterior(
         TypeError, ValueError: as for :func:`log_likelihood`; ``form="ml"`` with fewer observed
             pixels than factors.
     """
-    xv, m = _prepare(model, x, mask)
+    check_model(model, kinds=_IMAGE_MODELS)
+    m = mask_vector(mask, model.shape, model.factors.dtype)
     prior = form_choice(form)
     if not prior and not _checks.is_traced(m) and float(jnp.sum(m)) < model.n_factors:
         raise ValueError(
@@ -335,8 +366,8 @@ def posterior(
             f"{int(jnp.sum(m))}; use form='exact'"
         )
     if isinstance(model, FactorAnalyser):
-        return fa_posterior_flat(model, xv, m, prior)
-    return mofa_posterior(model, xv, m, prior)
+        return _per_image(lambda xv, m: fa_posterior_flat(model, xv, m, prior), model, x, mask)
+    return _per_image(lambda xv, m: mofa_posterior(model, xv, m, prior), model, x, mask)
 
 
 def responsibilities(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -45,8 +45,16 @@ def save_model(
     return save_arrays(path, arrays, meta, kind=KIND, protect=protect)
 
 
-def load_model(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
-    """Load what :func:`save_model` wrote: ``(model, metadata)``.
+class SavedModel(NamedTuple):
+    """A face model read back by :func:`load_model`, with the metadata saved beside it
+    (provenance: jface version, image shape, training settings)."""
+
+    model: Any
+    metadata: dict[str, Any]
+
+
+def load_model(path: str | os.PathLike) -> SavedModel:
+    """Load what :func:`save_model` wrote: the model with its metadata.
 
     Raises:
         FileNotFoundError: no such file.
@@ -82,4 +90,4 @@ def load_model(path: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
     d = int(np.prod(shape))
     if values[-1].shape[-1] != d:
         raise ValueError(f"{path}: model arrays do not match the image shape {shape}")
-    return model, meta
+    return SavedModel(model, meta)

@@ -13,7 +13,7 @@ import json
 import math
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -389,11 +389,35 @@ def _landmark_value(path: Path, name: str, value: Any, limit: tuple[int, str]) -
 
 def write_landmarks(
     path: str | os.PathLike,
-    landmarks: dict[str, Any],
+    landmarks: Any,
     *,
+    names: Sequence[str] | None = None,
     protect: tuple[str | os.PathLike, ...] = (),
 ) -> Path:
-    """Write name → vertex id or 3-D point as JSON (readable by :func:`read_landmarks`)."""
+    """Write name → vertex id or 3-D point as JSON (readable by :func:`read_landmarks`).
+
+    Args:
+        path: the JSON file.
+        landmarks: a mapping name → vertex id or 3-D point, or an ``(n, 3)`` array of points
+            named by ``names`` (e.g. ``jface.mesh.mediapipe_landmarks(vertices)``).
+        names: the names of an array's rows; default for 21 rows: the template's
+            (:data:`jface.mesh.LANDMARK_NAMES`).
+        protect: inputs the file must not replace.
+
+    Raises:
+        ValueError: an array that is not ``(n, 3)`` or whose row count differs from the names'.
+    """
+    if not isinstance(landmarks, Mapping):
+        points = np.asarray(landmarks)
+        if names is None and points.shape[:1] == (21,):
+            from jface.mesh._template import LANDMARK_NAMES as names  # the template's order
+        if points.ndim != 2 or points.shape[1] != 3 or names is None or len(names) != len(points):
+            raise ValueError(
+                f"landmarks must be a mapping name → id or point, or an (n, 3) array with n "
+                f"names (21 rows: the template's), got shape {points.shape} and "
+                f"{'no' if names is None else len(names)} names"
+            )
+        landmarks = dict(zip(names, points, strict=True))
     data = {}
     for name, value in landmarks.items():
         arr = np.asarray(value)

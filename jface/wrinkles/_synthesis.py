@@ -193,12 +193,40 @@ def synthesize(
         :class:`Synthesis`.
     """
     key, levels = _check_levels(key, levels, initial)
-    done = []
-    total = None
     sims = _simulate_levels(
         key, levels, initial, radius_map, periodic, n_steps, n_samples, progress
     )
-    for params, (sim, k_draw, bulge) in zip(levels, sims, strict=True):
+    return draw_simulated(key, levels, [sim for sim, _, _ in sims], shape)
+
+
+def draw_simulated(
+    key: jax.Array,
+    levels: WrinkleParams | Sequence[WrinkleParams],
+    simulated: Sequence[Simulated],
+    shape: tuple[int, int],
+) -> Synthesis:
+    """Draw levels simulated before (:func:`simulate_levels`, or read back from a file) and sum
+    them: the second of :func:`synthesize`'s steps, with the drawing keys it uses, so the same
+    ``key`` gives :func:`synthesize`'s map without simulating again.
+
+    Args:
+        key: the ``jax.random.key`` the levels were simulated with.
+        levels: one :class:`WrinkleParams` per level, coarse to fine.
+        simulated: one :class:`Simulated` per level.
+        shape: ``(H, W)`` of the map.
+
+    Returns:
+        :class:`Synthesis`.
+    """
+    key, levels = _check_levels(key, levels, None)
+    if len(simulated) != len(levels):
+        raise ValueError(f"need one simulated level per level: {len(levels)} levels, "
+                         f"{len(simulated)} simulated")  # fmt: skip
+    done = []
+    total = None
+    for i, (params, sim) in enumerate(zip(levels, simulated, strict=True)):
+        k_draw = jax.random.split(jax.random.fold_in(key, i), 3)[2]  # as _simulate_levels
+        bulge = i < len(levels) - 1 or len(levels) == 1
         disp = draw(k_draw, sim.graph, sim.weights, params, shape, bulge=bulge)
         done.append(Level(sim.pores, sim.graph, sim.weights, disp))
         total = disp if total is None else total + disp
