@@ -36,7 +36,7 @@ def test_faces_restyle_writes_the_face_in_the_target_style(lfw, tmp_path, capsys
     io.write_png(mask, mouth.astype(np.float32))
     common = ["faces", "restyle", str(folder), "--grey", "--grid", "5", "--translations", "0",
               "--angles", "--n-best", "2", "--model", str(model), "--image", str(face)]  # fmt: skip
-    assert main([*common, "--out", str(tmp_path / "all"), "--seed", "3"]) == 0
+    assert main([*common, "--out", str(tmp_path / "all"), "--seed", "3", "--json"]) == 0
     assert json.loads(capsys.readouterr().out.splitlines()[-1])["out"] == str(tmp_path / "all")
     out = io.read_image(tmp_path / "all" / "restyled.png")
     assert out.shape == (25, 25)

@@ -152,11 +152,6 @@ def test_deposits_count_one_hit_per_sample(graph):
     assert round(float(hits.sum())) == 7
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="jface.noise.counter_bits returns the same word at counter 0 for every seed and "
-    "stream, so the first sample of every step is the same pore and half-edge",
-)
 def test_one_step_hits_follow_eq3_in_distribution(graph):
     # E[hits of edge e] = N/n Σ_pores P(pore picks e), P from the reference loop of Eq. 3
     n_edges = graph.edge_mask.shape[0]

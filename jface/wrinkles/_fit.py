@@ -422,7 +422,9 @@ def fit_wrinkles(
     swarm = _merge(trials, best)
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
-    refined, loss, image = _refine(sim_key, levels, layout, target_stats, names, refine_steps)
+    refined, loss, image = _refine(
+        sim_key, levels, swarm.loss, layout, target_stats, names, refine_steps
+    )
     return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image)
 
 
@@ -449,8 +451,10 @@ def _merge(trials: list[PSOResult], best: int) -> PSOResult:
     )
 
 
-def _refine(sim_key, levels, layout, target_stats, names, steps):
-    """BFGS on the fitted drawing fields with the simulation result held fixed."""
+def _refine(sim_key, levels, start, layout, target_stats, names, steps):
+    """BFGS on the fitted drawing fields with the simulation result held fixed. ``start`` is the
+    swarm's loss of ``levels``: the answer is kept unless the refinement beats it (a redraw of
+    the same parameters can differ from the batched swarm's loss in the last bit)."""
     sims, levels = _simulate(sim_key, levels, layout)
     fields = [
         (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
@@ -478,7 +482,6 @@ def _refine(sim_key, levels, layout, target_stats, names, steps):
         return jnp.log(u) - jnp.log1p(-u)
 
     image = _draw(sim_key, sims, levels, layout)
-    start = _loss(image, target_stats)
     if not fields or steps == 0:
         return levels, start, image
     z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
