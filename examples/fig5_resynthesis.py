@@ -14,7 +14,7 @@ import jax
 import numpy as np
 from skimage import data
 
-from jface import detail, io, render, tiles
+from jface import detail, io, plots, render, tiles
 
 
 def main() -> None:
@@ -30,15 +30,25 @@ def main() -> None:
     smooth = np.asarray(detail.remove_detail(original, n_bands=3))
     result = np.asarray(detail.synthesize(jax.random.key(args.seed), smooth, stats))
     meta = io.provenance(seed=args.seed, experiment="Golovinskiy 2006 Fig. 5", size=args.size)
+    labels = []
     for name, image in (("original", original), ("smoothed", smooth), ("synthesized", result)):
         error = np.asarray(detail.stats_error(detail.analyze(image), stats))
+        labels.append(f"{name} ({np.median(error):.1%} std error)")
         print(
             f"{name:12s} per-tile std error: median {np.median(error):6.1%}, "
             f"p95 {np.percentile(error, 95):6.1%}"
         )
         io.write_exr(out / f"{name}.exr", image, metadata=meta)
         io.write_png(out / f"{name}.png", render.shade(image), metadata=meta)
-    io.write_png(out / "statistics.png", render.stats_mosaic(stats.std, 4), metadata=meta)
+    figure = plots.panel_grid(
+        [[render.shade(image) for image in (original, smooth, result)]],
+        title="Smoothed gravel re-synthesised to its statistics (Golovinskiy 2006 Fig. 5)",
+        col_labels=labels,
+        panel_inches=3.0,
+    )
+    io.write_figure(out / "fig5.png", figure, metadata=meta)
+    figure = plots.band_statistics(stats.std, 4, title="Per-tile std of each band: gravel")
+    io.write_figure(out / "statistics.png", figure, metadata=meta)
     print(f"wrote {out}/")
 
 

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from _ict_population import front_view, population, write_detailed
 
-from jface import detail, io, raster, render
+from jface import detail, io, plots, raster, render
 
 
 def main() -> None:
@@ -45,15 +45,22 @@ def main() -> None:
     frame = raster.framing(np.asarray(result.average.base.vertices))
     frame = (frame[0], 0.55 * frame[1])
     inputs = [front_view(f, frame=frame) for f in faces[:4]]
-    io.write_png(out / "inputs.png", render.strip(inputs), metadata=meta)
-    pair = [front_view(result.average, frame=frame), front_view(result.coerced, frame=frame)]
-    io.write_png(out / "fig7_average_vs_coerced.png", render.strip(pair), metadata=meta)
-    images = [result.average.image, result.coerced.image]
-    io.write_png(
-        out / "displacement_average_vs_coerced.png",
-        render.strip([render.shade(image) for image in images]),
-        metadata=meta,
+    figure = plots.panel_grid(
+        [inputs], title="Input faces", col_labels=[f"face {i + 1}" for i in range(len(inputs))]
     )
+    io.write_figure(out / "inputs.png", figure, metadata=meta)
+    images = [result.average.image, result.coerced.image]
+    figure = plots.panel_grid(
+        [
+            [front_view(result.average, frame=frame), front_view(result.coerced, frame=frame)],
+            [render.shade(image) for image in images],
+        ],
+        title=f"Interpolating {args.faces} faces (Golovinskiy 2006 Fig. 7)",
+        col_labels=["average of the displacements", "coerced to the mean statistics"],
+        row_labels=["rendered face", "displacement (shaded)"],
+        panel_inches=2.8,
+    )
+    io.write_figure(out / "fig7_average_vs_coerced.png", figure, metadata=meta)
     for name, face in (("average", result.average), ("coerced", result.coerced)):
         write_detailed(out, name, face, meta, f"interpolated face ({name})")
         ratio = detail.analyze(face.image).std[0] / result.target.std[0]

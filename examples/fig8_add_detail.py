@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from _ict_population import front_view, population
 
-from jface import detail, io, raster, render
+from jface import detail, io, plots, raster, render
 
 
 def main() -> None:
@@ -70,13 +70,14 @@ def main() -> None:
         )
     views.append(front_view(high, frame=frame))
     images.append(high.image)
-    io.write_png(out / "fig8_low_detailed_target.png", render.strip(views), metadata=meta)
-    io.write_png(
-        out / "displacements.png",
-        render.strip([render.shade(image) for image in images]),
-        metadata=meta,
+    figure = plots.panel_grid(
+        [views, [render.shade(image) for image in images]],
+        title="Adding detail to a low-resolution face (Golovinskiy 2006 Fig. 8)",
+        col_labels=["low resolution", *(f"detail: {name}" for name in targets), "the face"],
+        row_labels=["rendered face", "displacement (shaded)"],
+        panel_inches=2.4,
     )
-    print("panels: low-resolution, detail from one face, from the old group's mean, the face")
+    io.write_figure(out / "fig8_low_detailed_target.png", figure, metadata=meta)
     print(f"outputs in {out}/")
 
 

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from _ict_population import front_view, population, write_detailed
 
-from jface import detail, io, raster, render
+from jface import detail, io, plots, raster
 
 
 def main() -> None:
@@ -61,9 +61,18 @@ def main() -> None:
         "aging": [young, with_image(young, aged.image), aged, old],
         "deaging": [old, with_image(old, young_again.image), young_again, young],
     }
+    columns = {
+        "aging": ["young", "young + old detail", "aged", "old"],
+        "deaging": ["old", "old + young detail", "de-aged", "young"],
+    }
     for name, faces in rows.items():
-        views = [front_view(f, frame=frame) for f in faces]
-        io.write_png(out / f"fig9_{name}.png", render.strip(views), metadata=meta)
+        figure = plots.panel_grid(
+            [[front_view(f, frame=frame) for f in faces]],
+            title=f"{name.capitalize()} (Golovinskiy 2006 Fig. 9)",
+            col_labels=columns[name],
+            panel_inches=2.6,
+        )
+        io.write_figure(out / f"fig9_{name}.png", figure, metadata=meta)
     for name, face in (("aged", aged), ("deaged", young_again)):
         write_detailed(out, name, face, meta, f"{name} face (Golovinskiy 2006 §3.4)")
 
@@ -77,8 +86,13 @@ def main() -> None:
         np.median(np.asarray(detail.stats_error(detail.analyze(image), stats["old"])), axis=0)
         for image in images
     ]
-    figure = render.comparison(images, errors)
-    io.write_png(out / "fig10_comparison.png", figure, metadata=meta)
+    figure = plots.method_comparison(
+        images,
+        errors,
+        ["young", "old", *results],
+        title="Aging the young face's detail: methods compared (Golovinskiy 2006 Fig. 10)",
+    )
+    io.write_figure(out / "fig10_comparison.png", figure, metadata=meta)
     lines = [
         "| method | median per-tile std error to the old face | corr. with young, coarsest "
         "detail scale | corr. with young, mid scale |",

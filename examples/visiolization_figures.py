@@ -34,9 +34,9 @@ import jax
 import numpy as np
 from skimage import data, transform
 
-from jface import faces, io
+from jface import faces, io, plots
 from jface.cli._faces import face_renders
-from jface.cli._quilt import colour_sources, montage
+from jface.cli._quilt import colour_sources
 
 HELD_OUT = 10
 
@@ -65,15 +65,27 @@ def figures(
     local = jax.vmap(lambda k, t: faces.quilt(k, library, t, lam=0.0, symmetric=symmetric))(
         keys, targets
     )
-    rows = [targets, local.image, combined.quilted, combined.image]
-    io.write_png(out / "fig5.png", montage(np.concatenate([np.asarray(r) for r in rows]), n))
+    rows = [list(np.asarray(r)) for r in (targets, local.image, combined.quilted, combined.image)]
+    figure = plots.panel_grid(
+        rows,
+        title=f"{name.upper()}: synthesis by non-stationary quilting (Mohammed et al. 2009 Fig. 5)",
+        row_labels=["global target", "local only (λ = 0)", "quilted", "blended"],
+        quantities="image",
+        panel_inches=1.0,
+    )
+    io.write_figure(out / "fig5.png", figure)
 
     nearest = [faces.nearest_training(im, train) for im in combined.image]
     smaps = colour_sources(np.asarray(faces.source_map(combined, library)))
     closest = train[[int(i) for i, _ in nearest]]
-    grey3 = np.repeat(np.clip(np.asarray(combined.image), 0, 1)[..., None], 3, -1)
-    fig8 = np.concatenate([grey3, smaps, np.repeat(closest[..., None], 3, -1)])
-    io.write_png(out / "fig8.png", montage(fig8, n))
+    figure = plots.panel_grid(
+        [list(np.clip(np.asarray(combined.image), 0, 1)), list(smaps), list(closest)],
+        title=f"{name.upper()}: faces, their patch sources, nearest training faces (MPK09 Fig. 8)",
+        row_labels=["synthesised", "patch sources", "nearest"],
+        quantities="image",
+        panel_inches=1.0,
+    )
+    io.write_figure(out / "fig8.png", figure)
 
     face = held[0]
     mask = np.zeros(face.shape, bool)
@@ -82,13 +94,26 @@ def figures(
         key_i, library, model, face, mask, 3, symmetric=symmetric
     )
     holed = np.where(mask, 1.0, face)
-    panel = [np.stack([face, holed, np.asarray(hyp_targets[0])]), np.asarray(hyp.image)]
-    io.write_png(out / "fig10.png", montage(np.concatenate(panel), 6))
+    figure = plots.panel_grid(
+        [[face, holed, np.asarray(hyp_targets[0]), *np.asarray(hyp.image)]],
+        title=f"{name.upper()}: inpainting the top of the head (Mohammed et al. 2009 Fig. 10)",
+        col_labels=["input", "hole", "global fill", "hypothesis 1", "hypothesis 2", "hypothesis 3"],
+        quantities="image",
+        panel_inches=1.3,
+    )
+    io.write_figure(out / "fig10.png", figure)
 
     painted = face.copy()
     painted[int(0.68 * size) : int(0.72 * size), int(0.33 * size) : int(0.67 * size)] = 0.08
     edited = faces.guided_edit(key_e, library, face, painted)
-    io.write_png(out / "fig11.png", montage(np.stack([face, painted, edited.image]), 3))
+    figure = plots.panel_grid(
+        [[face, painted, np.asarray(edited.image)]],
+        title=f"{name.upper()}: guided edit (Mohammed et al. 2009 Fig. 11)",
+        col_labels=["input", "painted", "edited"],
+        quantities="image",
+        panel_inches=1.5,
+    )
+    io.write_figure(out / "fig11.png", figure)
 
     if smiling is not None:
         pairs = np.stack([train, smiling[:-HELD_OUT]], axis=1)
@@ -99,12 +124,21 @@ def figures(
             faces.restyle(k, smile_library, bilinear, held[i])
             for k, i in zip(jax.random.split(key_s, len(shown)), shown, strict=True)
         ]
-        columns = [
-            np.stack([held[i], np.asarray(p), np.asarray(r.image), smiling[-HELD_OUT + i]])
-            for (r, p), i in zip(made, shown, strict=True)
-        ]
         # one column per face: neutral, prediction, restyled, true smile
-        io.write_png(out / "fig12.png", montage(np.stack(columns, 1).reshape(-1, size, size), 4))
+        rows = [
+            [held[i] for i in shown],
+            [np.asarray(p) for _, p in made],
+            [np.asarray(r.image) for r, _ in made],
+            [smiling[-HELD_OUT + i] for i in shown],
+        ]
+        figure = plots.panel_grid(
+            rows,
+            title=f"{name.upper()}: neutral to smiling (Mohammed et al. 2009 Fig. 12)",
+            row_labels=["neutral", "style model", "restyled", "true smile"],
+            quantities="image",
+            panel_inches=1.2,
+        )
+        io.write_figure(out / "fig12.png", figure)
 
     nn = np.asarray(faces.training_nn_distances(train))
     return {

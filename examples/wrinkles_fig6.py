@@ -13,9 +13,8 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from jface import io
+from jface import io, plots
 from jface.cli._wrinkles import draw_graph
 from jface.wrinkles import (
     WrinkleParams,
@@ -53,8 +52,17 @@ def main() -> None:
         keys, params
     )
     tiles = [draw_graph([(pores, graph, w)], 384, True) for w in weights]
-    strip = np.concatenate([np.pad(t, ((0, 0), (0, 6)), constant_values=1.0) for t in tiles], 1)
-    io.write_png(out / "fig6_parameters.png", strip, metadata=io.provenance(seed=args.seed))
+    figure = plots.panel_grid(
+        [tiles],
+        title="Wrinkle graphs under one parameter changed at a time (Weiss et al. 2023 Fig. 6)",
+        col_labels=[
+            name if name == "default" else f"α_{name.replace(' ', ' = ')}" for name in PANELS
+        ],
+        quantities="image",
+        panel_inches=2.2,
+    )
+    meta = io.provenance(seed=args.seed, base=base, panels=PANELS)
+    io.write_figure(out / "fig6_parameters.png", figure, metadata=meta)
     print("panels:", ", ".join(PANELS))
 
     # a swarm epoch: agents whose α_d differ share static capacities and one GraphSpec

@@ -9,7 +9,7 @@ Subpackages, imported on first use (``import jface; jface.detail.analyze(...)``)
 - ``jface.wrinkles``: pores, pore graph, wrinkle simulation and drawing (Weiss et al. 2023);
 - ``jface.optim``: particle swarm, Anderson acceleration;
 - ``jface.noise``: counter-based noise; ``jface.raster``, ``jface.render``: images of meshes
-  and maps;
+  and maps; ``jface.plots``: paper-style figures (matplotlib);
 - ``jface.io``: every file jface reads or writes; ``jface.data``: the real data it ships.
 """
 
@@ -25,6 +25,7 @@ _SUBMODULES = (
     "mesh",
     "noise",
     "optim",
+    "plots",
     "pyramid",
     "raster",
     "render",

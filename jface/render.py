@@ -1,4 +1,4 @@
-"""Pictures of results: shaded relief of displacement maps, colour maps, statistics mosaics.
+"""Pictures of results: shaded relief of displacement maps, colour maps, polar statistics glyphs.
 
 Fine geometric detail is invisible in a plain height image, so maps are shown the way the papers
 show them: lit relief with the detail of every scale exaggerated (in the spirit of Rusinkiewicz
@@ -9,7 +9,6 @@ own with a gain that makes its typical slope visible, and the shadings are summe
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -102,35 +101,6 @@ def colormap(values: ArrayLike, low: float | None = None, high: float | None = N
     return (_VIRIDIS[index] * (1 - frac) + _VIRIDIS[index + 1] * frac).astype(np.float32)
 
 
-def stats_mosaic(std: ArrayLike, n_orientations: int, *, cell: int = 8, gap: int = 2) -> np.ndarray:
-    """A picture of per-tile statistics: one tile-map per band, the high-pass on the first row,
-    then one row per scale with its orientations side by side. Each band is normalised by its
-    own maximum (the scales differ by orders of magnitude) and drawn with :func:`colormap`.
-
-    Args:
-        std: ``(1 + n_scales * n_orientations, grid, grid)`` per-tile values.
-        n_orientations: orientations per scale.
-        cell: pixels per tile.
-        gap: pixels between bands.
-
-    Returns:
-        ``(H, W, 3)`` float32 RGB image.
-    """
-    std = np.asarray(std, dtype=np.float64)
-    n_bands, grid, _ = std.shape
-    n_scales = (n_bands - 1) // n_orientations
-    size = grid * cell
-    rows, cols = 1 + n_scales, n_orientations
-    out = np.ones((rows * (size + gap) + gap, cols * (size + gap) + gap, 3), np.float32)
-    for b in range(n_bands):
-        row, col = (0, 0) if b == 0 else (1 + (b - 1) // n_orientations, (b - 1) % n_orientations)
-        picture = colormap(std[b] / (std[b].max() or 1.0), 0.0, 1.0)
-        picture = np.repeat(np.repeat(picture, cell, axis=0), cell, axis=1)
-        y, x = gap + row * (size + gap), gap + col * (size + gap)
-        out[y : y + size, x : x + size] = picture
-    return out
-
-
 #: Colours of overlaid groups in :func:`polar_glyphs` (black, red, blue, as the paper's Fig. 6).
 GROUP_COLOURS = ((0.0, 0.0, 0.0), (0.85, 0.1, 0.1), (0.1, 0.25, 0.9), (0.1, 0.6, 0.2))
 
@@ -177,53 +147,3 @@ def polar_glyphs(
         xs = np.clip(np.round(xs).astype(int), 0, size - 1)
         out[ys.ravel(), xs.ravel()] = colours[g]
     return out
-
-
-def strip(panels: Sequence[ArrayLike], *, gap: int = 4) -> np.ndarray:
-    """Panels of one height side by side on white, for figures that compare images.
-
-    Args:
-        panels: ``(H, W)`` grey or ``(H, W, 3)`` RGB images in [0, 1], all of one height.
-        gap: white pixels between panels.
-
-    Returns:
-        ``(H, W_total)`` grey when every panel is grey, else ``(H, W_total, 3)`` RGB.
-    """
-    arrays = [np.asarray(p, dtype=np.float32) for p in panels]
-    if not arrays:
-        raise ValueError("panels must hold at least one image, got none")
-    if len({a.shape[0] for a in arrays}) != 1:
-        raise ValueError(f"panels must share one height, got {[a.shape[0] for a in arrays]}")
-    if any(a.ndim == 3 for a in arrays):
-        arrays = [a if a.ndim == 3 else np.repeat(a[..., None], 3, axis=-1) for a in arrays]
-    spacer = np.ones((arrays[0].shape[0], gap, *arrays[0].shape[2:]), np.float32)
-    out = [arrays[0]]
-    for a in arrays[1:]:
-        out += [spacer, a]
-    return np.concatenate(out, axis=1)
-
-
-def comparison(images: Sequence[ArrayLike], errors: Sequence[ArrayLike]) -> np.ndarray:
-    """A method-comparison figure (as the paper's Fig. 10): shaded reliefs of the images side by
-    side, and below each its per-tile error map (0 dark blue … ≥ 1 yellow), stretched to the
-    image's size.
-
-    Args:
-        images: ``(H, W)`` maps, all of one shape.
-        errors: one ``(g, g)`` per-tile error map per image (e.g. the median over bands of
-            :func:`jface.detail.stats_error`).
-
-    Returns:
-        ``(2H + 4, W_total, 3)`` RGB image in [0, 1].
-    """
-    if len(images) != len(errors):
-        raise ValueError(f"need one error map per image: {len(images)} images, {len(errors)} maps")
-    shaded = strip([shade(image) for image in images])
-    coloured = []
-    for image, error in zip(images, errors, strict=True):
-        error = np.asarray(error, dtype=np.float64)
-        h, w = np.shape(image)
-        cell = np.ones((h // error.shape[0], w // error.shape[1]))
-        coloured.append(colormap(np.kron(error, cell), 0.0, 1.0))
-    top = np.repeat(shaded[..., None], 3, axis=-1)
-    return np.concatenate([top, np.ones((4, *top.shape[1:]), np.float32), strip(coloured)])

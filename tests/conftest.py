@@ -137,3 +137,27 @@ def unchecked():
     jaxtyping.config.update("jaxtyping_disable", True)
     yield
     jaxtyping.config.update("jaxtyping_disable", False)
+
+
+@pytest.fixture
+def written_figures(monkeypatch) -> dict:
+    """File name → the matplotlib figure written there by :func:`jface.io.write_figure`, from
+    any jface module that writes figures (each holds its own reference to the writer)."""
+    import importlib
+    import sys
+
+    from jface import io
+    from jface.cli import COMMAND_MODULES
+
+    for name in COMMAND_MODULES:  # each command module imported, so its reference is replaced
+        importlib.import_module(name)
+    real, found = io.write_figure, {}
+
+    def capture(path, figure, **kwargs):
+        found[Path(path).name] = figure
+        return real(path, figure, **kwargs)
+
+    for name, module in list(sys.modules.items()):
+        if name.startswith("jface") and getattr(module, "write_figure", None) is real:
+            monkeypatch.setattr(module, "write_figure", capture)
+    return found

@@ -76,7 +76,7 @@ def test_synthesize_writes_a_map_with_the_target_statistics(gravel, brick, tmp_p
     assert error(got) < 0.1 < error(before)
 
 
-def test_wrinkles_simulate_writes_weights_along_the_asked_orientation(tmp_path):
+def test_wrinkles_simulate_writes_weights_along_the_asked_orientation(tmp_path, written_figures):
     out = tmp_path / "sim"
     args = ["wrinkles", "simulate", "--out", str(out), "--d", "0.05", "--s", "0", "--theta",
             "1.0", "--levels", "1", "--steps", "60", "--seed", "1", "--size", "64"]  # fmt: skip
@@ -90,4 +90,7 @@ def test_wrinkles_simulate_writes_weights_along_the_asked_orientation(tmp_path):
     z = np.sum(weights * np.exp(2j * np.arctan2(delta[:, 1], delta[:, 0]))) / weights.sum()
     assert abs(np.angle(z) / 2 - 1.0) < 0.1 and abs(z) > 0.5
     assert json.loads((out / "params.json").read_text())["levels"][0]["theta"] == pytest.approx(1.0)
-    assert io.read_image(out / "wrinkles.png").shape[:2] == (64, 64)
+    # the figure draws the graph at the map's size, under a title
+    (panel,) = [ax for ax in written_figures["wrinkles.png"].axes if ax.images]
+    assert panel.images[0].get_array().shape[:2] == (64, 64)
+    assert written_figures["wrinkles.png"].get_suptitle()

@@ -80,8 +80,6 @@ def test_shade_shows_relief():
     assert image[50, 50] > 0.55 > 0.45 > image[78, 78]
     # Scale-free, and no float32 overflow for huge (finite) heights.
     np.testing.assert_allclose(render.shade(bump * np.float32(3e37)), image, atol=1e-4)
-    mosaic = render.stats_mosaic(np.random.default_rng(0).random((17, 4, 4)), 4, cell=2)
-    assert mosaic.shape[-1] == 3 and mosaic.shape[0] == 5 * 8 + 6 * 2
 
 
 def test_cli_analyze_synthesize_render(tmp_path, gravel, capsys):

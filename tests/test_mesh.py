@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
-from PIL import Image
 
 from jface import io, mesh
 
@@ -201,7 +200,7 @@ def test_non_manifold_and_degenerate_topology():
         mesh.subdivide_topology(faces[:1], 3, "butterfly")
 
 
-def test_cli_remesh_and_displace(tmp_path, capsys):
+def test_cli_remesh_and_displace(tmp_path, capsys, written_figures):
     from jface.cli import main
 
     face = mesh.canonical_face()
@@ -215,10 +214,13 @@ def test_cli_remesh_and_displace(tmp_path, capsys):
     names = {p.name for p in out.iterdir()}
     assert {"base.obj", "displacement.exr", "displacement.png", "base_shaded.png"} <= names
     for name in ("base_shaded.png", "detailed_shaded.png"):  # 3-D views: frontal and turned
-        view = np.asarray(Image.open(out / name), dtype=np.float64)
-        assert view.shape == (64, 2 * 64 + 4)
-        assert view[0, 0] == 0 and view[-1, -1] == 0  # background around the face
-        assert view[32, 32] > 0 and view[32, 68 + 32] > 0  # the lit face in the middle of both
+        axes = [ax for ax in written_figures[name].axes if ax.images]
+        assert [ax.get_title() for ax in axes] == ["frontal", "turned 35°"]
+        for view in (np.asarray(ax.images[0].get_array(), np.float64) for ax in axes):
+            assert view.shape == (64, 64)
+            assert view[0, 0] == 0 and view[-1, -1] == 0  # background around the face
+            assert view[32, 32] > 0  # the lit face in the middle
+        assert io.read_image(out / name).shape[1] > 2 * 64  # a figure, not the raw views
     exr = io.read_exr(out / "displacement.exr")
     assert exr.metadata["source"] == "face.obj" and exr.metadata["schedule"] == [1, 1, 1]
     assert np.all(np.isfinite(exr.channels["Y"]))

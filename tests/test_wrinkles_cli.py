@@ -10,7 +10,7 @@ from jface.io import load_arrays, read_image, read_mesh
 from jface.wrinkles import WrinkleParams, save_params
 
 
-def test_simulate_writes_graph_weights_and_picture(tmp_path, capsys):
+def test_simulate_writes_graph_weights_and_picture(tmp_path, capsys, written_figures):
     params = tmp_path / "levels.json"
     save_params(params, [WrinkleParams(d=0.04, theta=0.5, s=0.1), WrinkleParams(d=0.02)])
     out = tmp_path / "run"
@@ -24,8 +24,9 @@ def test_simulate_writes_graph_weights_and_picture(tmp_path, capsys):
     for i in range(2):
         w = arrays[f"level{i}_weights"]
         assert w.shape == (len(arrays[f"level{i}_edge_nodes"]),) and w.min() >= 0 and w.max() <= 1
-    picture = read_image(out / "wrinkles.png")
+    picture = written_figures["wrinkles.png"].axes[0].images[0].get_array()
     assert picture.shape[:2] == (256, 256) and picture.min() < 0.5
+    assert read_image(out / "wrinkles.png").ndim == 3  # the figure, in colour
     assert "pores" in capsys.readouterr().out
 
 

@@ -23,10 +23,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import io as io_text
 import json
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -100,12 +102,48 @@ def refuse_shared_names(inputs: Sequence, names: Sequence[str]) -> None:
             )
 
 
+class _Tee(io_text.TextIOBase):
+    """Text to the console that is also kept, for the run's page."""
+
+    def __init__(self, console):
+        self.console, self.lines = console, []
+
+    def write(self, text: str) -> int:
+        self.lines += [line for line in text.splitlines() if line.strip()]
+        return self.console.write(text)
+
+    def flush(self) -> None:
+        self.console.flush()
+
+
 def _demo(args: argparse.Namespace) -> dict:
+    from jface.cli._report import write_index
+
     out = Path(args.out)
-    for module in _modules():
-        if hasattr(module, "demo"):
-            module.demo(out, seed=args.seed)
-            io.commit()  # a later step's failure keeps the steps done
+    steps = [m for m in _modules() if hasattr(m, "demo")]
+    records = [{"name": m.__name__.rsplit("._", 1)[-1], "status": "not run"} for m in steps]
+    meta = io.provenance(seed=args.seed, command="jface demo", out=str(out))
+
+    def page() -> None:
+        meta["timings_s"] = {r["name"]: round(r["seconds"], 2) for r in records if "seconds" in r}
+        write_index(out, title="jface demo", provenance=meta, steps=records)
+        io.commit()
+
+    for module, record in zip(steps, records, strict=True):
+        tee, start = _Tee(sys.stdout), time.perf_counter()
+        try:
+            with contextlib.redirect_stdout(tee):
+                module.demo(out, seed=args.seed)
+        except BaseException as err:
+            # The failed step's outputs go; the page tells what the steps done left.
+            record |= {"status": f"failed: {type(err).__name__}: {err}", "console": tee.lines}
+            io.discard()
+            page()
+            raise
+        record |= {"status": "done", "console": tee.lines}
+        record["seconds"] = time.perf_counter() - start
+        io.commit()  # a later step's failure keeps the steps done
+    page()
     return {"out": str(out)}
 
 
@@ -116,7 +154,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="run the main job on built-in data and write its results")
     demo.add_argument("--out", default="jface-demo", help="output folder (default: jface-demo)")
     demo.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    demo.set_defaults(run=_demo, prose="demo outputs written to {out}/")
+    demo.set_defaults(
+        run=_demo, prose="demo outputs written to {out}/; the page {out}/index.html shows them"
+    )
     for module in _modules():
         module.register(sub)
     _hidden_fit(sub)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from jface import detail, io, mesh, render, wrinkles
+from jface import detail, io, mesh, plots, render, wrinkles
 from jface.cli import deprecated_alias
 from jface.cli._detail import _parse_group
 from jface.cli._mesh import check_face_outputs, write_face
@@ -221,8 +221,12 @@ def _interpolate(args: argparse.Namespace) -> dict:
         name: {"median_tile_std_error": _error(face.image, result.target)}
         for name, face in (("average", result.average), ("coerced", result.coerced))
     }
-    figure = render.strip([render.shade(result.average.image), render.shade(result.coerced.image)])
-    io.write_png(out / "average_vs_coerced.png", figure, metadata=meta)
+    figure = plots.panel_grid(
+        [[render.shade(result.average.image), render.shade(result.coerced.image)]],
+        title="Interpolated faces: averaged detail, then coerced to the interpolated statistics",
+        col_labels=["average", "coerced"],
+    )
+    io.write_figure(out / "average_vs_coerced.png", figure, metadata=meta)
     io.write_json(out / "interpolation.json", {**meta, "results": table})
     return {"out": str(out), **table}
 
@@ -241,8 +245,12 @@ def _add_detail(args: argparse.Namespace) -> dict:
     )
     out = Path(args.out)
     write_face(out, result, meta, args.format)
-    figure = render.strip([render.shade(face.image), render.shade(result.image)])
-    io.write_png(out / "before_after.png", figure, metadata=meta)
+    figure = plots.panel_grid(
+        [[render.shade(face.image), render.shade(result.image)]],
+        title="Adding detail: the face before and after synthesis to the target statistics",
+        col_labels=["before", "after"],
+    )
+    io.write_figure(out / "before_after.png", figure, metadata=meta)
     table = {"before": _error(face.image, target), "after": _error(result.image, target)}
     io.write_json(out / "add_detail.json", {**meta, "median_tile_std_error": table})
     return {"out": str(out), "median_tile_std_error": table}
@@ -296,10 +304,15 @@ def age_and_compare(
     for name, image in results.items():
         io.write_exr(out / "methods" / f"{name}.exr", np.asarray(image), metadata=meta)
     # Fig. 10: young, old, then the four methods; below, each one's per-tile error to the target
-    # statistics (0 dark .. 100% yellow).
+    # statistics.
     images = [young.image, old.image, *results.values()]
-    figure = render.comparison(images, [_tile_errors(image, target) for image in images])
-    io.write_png(out / "comparison.png", figure, metadata=meta)
+    figure = plots.method_comparison(
+        images,
+        [_tile_errors(image, target) for image in images],
+        ["young", "old", *results],
+        title="Aging the young face to the target statistics: methods compared (GMP06 Fig. 10)",
+    )
+    io.write_figure(out / "comparison.png", figure, metadata=meta)
     io.write_json(out / "comparison.json", {**meta, "methods": scores})
     return scores
 

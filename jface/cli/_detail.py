@@ -12,7 +12,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jface import detail, io, render
+from jface import detail, io, plots, render
 from jface.cli import deprecated_alias, refuse_shared_names
 from jface.detail._population import check_records
 
@@ -243,9 +243,11 @@ def _analyze(args: argparse.Namespace) -> dict:
                 continue
         stats = detail.analyze(io.read_map(name), **settings)
         detail.save_stats(target, stats, source=source, boundary=args.boundary, key=key)
-        mosaic = render.stats_mosaic(stats.std, stats.n_orientations)
+        figure = plots.band_statistics(
+            stats.std, stats.n_orientations, title=f"Per-tile std of each band: {source}"
+        )
         meta = io.provenance(source=source, grid=args.grid, scales=args.scales)
-        io.write_png(picture, mosaic, metadata=meta)
+        io.write_figure(picture, figure, metadata=meta)
         io.commit()  # each finished map survives a crash of a later one
         done += 1
     return {"out": str(out), "analyzed": done, "kept": skipped}
@@ -391,11 +393,20 @@ def _db_compare(args: argparse.Namespace) -> dict:
         raise ValueError(f"--show-scale must be in [0, {population.stats.n_scales - 1}]")
     first = 1 + args.show_scale * k
     ratios = np.asarray(comparison.ratios[:, first : first + k])
-    io.write_png(
-        out,
-        render.polar_glyphs(ratios),
-        metadata=io.provenance(db=Path(args.db).name, groups=args.group, scale=args.show_scale),
+    # One heat map per group and orientation, then the paper's Fig. 6 glyphs of all groups.
+    colours = ("black", "red", "blue", "green")[: len(groups)]
+    glyphs = ", ".join(f"{c}: {n}" for c, n in zip(colours, comparison.names, strict=True))
+    figure = plots.panel_grid(
+        [list(row) for row in ratios] + [[render.polar_glyphs(ratios)]],
+        title=f"Per-tile std of each group over the reference group's, scale {args.show_scale}",
+        col_labels=[f"{180 * b / k:.0f}°" for b in range(k)],
+        row_labels=[*comparison.names, f"polar glyphs\n({glyphs})"],
+        quantities=["statistics"] * len(groups) + ["relief"],
+        units="std ratio to reference",
+        limits=[(float(ratios.min()), float(ratios.max()))] * len(groups) + [(None, None)],
     )
+    meta = io.provenance(db=Path(args.db).name, groups=args.group, scale=args.show_scale)
+    io.write_figure(out, figure, metadata=meta)
     table = {
         name: {"faces": len(groups[name]), "mean_ratio": float(ratios[i].mean())}
         for i, name in enumerate(comparison.names)
@@ -431,14 +442,20 @@ def demo(out: Path, seed: int) -> None:
     for name, image in (("original", original), ("smoothed", smooth), ("synthesized", result)):
         io.write_exr(out / "detail" / f"{name}.exr", np.asarray(image), metadata=meta)
         shaded.append(render.shade(image))
-    io.write_png(
-        out / "detail" / "fig5_original_smoothed_synthesized.png",
-        render.strip(shaded),
-        metadata=meta,
+    figure = plots.panel_grid(
+        [shaded],
+        title="Re-synthesis of gravel detail (Golovinskiy 2006 Fig. 5)",
+        col_labels=[
+            "original",
+            f"smoothed ({errors['smoothed']:.0%} std error)",
+            f"synthesized ({errors['synthesized']:.0%} std error)",
+        ],
     )
-    io.write_png(
-        out / "detail" / "statistics.png", render.stats_mosaic(stats.std, 4), metadata=meta
+    io.write_figure(
+        out / "detail" / "fig5_original_smoothed_synthesized.png", figure, metadata=meta
     )
+    figure = plots.band_statistics(stats.std, 4, title="Per-tile std of each band: gravel")
+    io.write_figure(out / "detail" / "statistics.png", figure, metadata=meta)
     print(
         "detail: median per-tile std error to the original's statistics — "
         f"smoothed {errors['smoothed']:.1%}, re-synthesised {errors['synthesized']:.1%}"

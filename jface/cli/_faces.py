@@ -4,7 +4,6 @@ to a template (and un-warp synthesised ones, ``synth --unwarp``)."""
 from __future__ import annotations
 
 import argparse
-import math
 import time
 from importlib import resources
 from pathlib import Path
@@ -13,7 +12,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from jface import faces, raster
+from jface import faces, plots, raster
 from jface.cli import _quilt as quilting
 from jface.cli import deprecated_alias, refuse_shared_names
 from jface.io import (
@@ -22,6 +21,7 @@ from jface.io import (
     provenance,
     read_image,
     read_json,
+    write_figure,
     write_json,
     write_png,
 )
@@ -72,8 +72,8 @@ def register(subparsers) -> None:
         "--upscale",
         type=int,
         default=None,
-        help="pixel-repeat factor of grid.png (default: the smallest that makes it "
-        f"{quilting.FIGURE_SIDE} pixels or more across; the sample PNGs keep their size)",
+        help="draw the faces of grid.png N times larger (default: 1; the sample PNGs keep "
+        "their size)",
     )
     sample.set_defaults(run=_sample, prose="wrote {n} samples and {grid}")
 
@@ -175,25 +175,17 @@ def _train(args: argparse.Namespace) -> dict:
     }
 
 
-def grid(images: np.ndarray, pad: int = 1) -> np.ndarray:
-    """Tile ``(n, H, W)`` images into a near-square grid with ``pad`` pixels of white between."""
-    n, h, w = images.shape
-    cols = math.ceil(math.sqrt(n))
-    rows = math.ceil(n / cols)
-    out = np.ones((rows * (h + pad) + pad, cols * (w + pad) + pad), np.float32)
-    for i, img in enumerate(images):
-        r, c = divmod(i, cols)
-        out[
-            pad + r * (h + pad) : (r + 1) * (h + pad), pad + c * (w + pad) : (c + 1) * (w + pad)
-        ] = img
-    return out
-
-
 def _write_samples(out: Path, images: np.ndarray, meta: dict, *, upscale: int | None) -> Path:
     images = np.clip(images, 0.0, 1.0)
     for i, img in enumerate(images):
         write_png(out / f"sample_{i:03d}.png", img, metadata=meta)
-    return write_png(out / "grid.png", quilting.enlarge(grid(images), upscale), metadata=meta)
+    figure = plots.image_grid(
+        list(images),
+        title=f"{len(images)} faces sampled from the factor analyser (seed {meta.get('seed')})",
+        labels=[f"sample {i}" for i in range(len(images))],
+        panel_inches=quilting.panel_inches(upscale),
+    )
+    return write_figure(out / "grid.png", figure, metadata=meta)
 
 
 def _sample(args: argparse.Namespace) -> dict:
@@ -240,9 +232,12 @@ def demo(out_dir: Path, seed: int) -> None:
     result = faces.fit_factor_analyser(data, 8)
     meta = provenance(seed=seed, step="faces demo", n_images=120, n_factors=8)
     faces.save_model(out / "face_model.npz", result.model, meta)
-    write_png(out / "training_grid.png", np.kron(grid(np.clip(data[:16], 0, 1)), np.ones((4, 4))))
+    figure = plots.image_grid(
+        list(np.clip(data[:16], 0, 1)), title="Training faces: renders of random ICT identities"
+    )
+    write_figure(out / "training_grid.png", figure, metadata=meta)
     images = np.asarray(faces.sample(jax.random.key(seed), result.model, 16))
-    grid_path = _write_samples(out / "samples", images, meta, upscale=4)
+    grid_path = _write_samples(out / "samples", images, meta, upscale=None)
     ll = np.asarray(result.log_likelihood)
     print(
         f"faces: 8-factor analyser fitted to 120 renders (log-likelihood {ll[0]:.0f} → "

@@ -10,8 +10,9 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from jface import plots
 from jface.cli import deprecated_alias
-from jface.io import check_output, provenance, read_map, write_json, write_png
+from jface.io import check_output, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import fit_wrinkles, params_to_json
 
@@ -111,9 +112,21 @@ def _fit(args: argparse.Namespace) -> dict:
     }
     write_json(out, document)
     history = np.asarray(fit.swarm.history)
-    write_png(f"{stem}_convergence.png", convergence_plot(history), metadata=meta)
-    pair = np.concatenate([shade(patch), np.ones((patch.shape[0], 8)), shade(fit.fitted)], 1)
-    write_png(f"{stem}_target_fit.png", pair, metadata=meta)
+    figure = plots.convergence(
+        history,
+        title="Wrinkle fit: particle swarm, best loss per trial",
+        xlabel="epoch (0: the initial swarm)",
+    )
+    write_figure(f"{stem}_convergence.png", figure, metadata=meta)
+    pair = plots.panel_grid(
+        [[shade(patch), shade(fit.fitted)], [np.asarray(patch), np.asarray(fit.fitted)]],
+        title=f"Wrinkle fit: measured patch and fitted simulation (loss {float(fit.loss):.3g})",
+        col_labels=["measured", "fitted"],
+        row_labels=["shaded relief", "displacement"],
+        quantities=["relief", "displacement"],
+        units=[None, "displacement (map units)"],
+    )
+    write_figure(f"{stem}_target_fit.png", pair, metadata=meta)
     bad = int(np.sum(fit.swarm.n_nonfinite))
     return {
         "out": str(out),
@@ -123,20 +136,3 @@ def _fit(args: argparse.Namespace) -> dict:
         "loss": float(fit.loss),
         "nonfinite": bad,
     }
-
-
-def convergence_plot(history: np.ndarray, height: int = 200, width: int = 400) -> np.ndarray:
-    """Grey image of the best-so-far loss per epoch (log scale), one dark curve per trial."""
-    image = np.ones((height, width))
-    finite = history[np.isfinite(history)]
-    if finite.size == 0:
-        return image
-    logs = np.log10(np.maximum(history, 1e-12))
-    lo, hi = np.log10(max(finite.min(), 1e-12)), np.log10(max(finite.max(), 1e-12))
-    span = max(hi - lo, 1e-6)
-    xs = np.linspace(0, width - 1, 4 * width)
-    for i, row in enumerate(logs):
-        curve = np.interp(xs / (width - 1) * (row.size - 1), np.arange(row.size), row)
-        ys = (height - 1) * (1 - (np.clip(curve, lo, hi) - lo) / span)
-        image[ys.round().astype(int), xs.round().astype(int)] = 0.6 * i / max(len(logs), 2)
-    return image

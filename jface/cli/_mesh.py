@@ -10,7 +10,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jface import io, mesh, raster, render
+from jface import io, mesh, plots, raster, render
 from jface.cli import deprecated_alias
 
 
@@ -98,14 +98,16 @@ def _face_pose(face) -> np.ndarray:
     return np.stack([np.cross(up, forward), up, forward])
 
 
-def _views(vertices, faces, pose: np.ndarray, center, extent: float, size: int) -> np.ndarray:
-    """Shaded 3-D views of a mesh, frontal and turned 35° (nose to the image's right)."""
+def _views(vertices, faces, pose: np.ndarray, center, extent: float, size: int, title: str):
+    """Figure of shaded 3-D views of a mesh, frontal and turned 35° (nose to the right)."""
     posed = np.asarray(vertices, dtype=np.float64) @ pose.T
     frames = [
         raster.render(posed, np.asarray(faces), size, yaw=yaw, center=center, extent=extent)
         for yaw in (0.0, 35.0)
     ]
-    return render.strip(frames)
+    return plots.panel_grid(
+        [frames], title=title, col_labels=["frontal", "turned 35°"], panel_inches=3.0
+    )
 
 
 def check_face_outputs(out: Path, fmt: str) -> None:
@@ -138,13 +140,12 @@ def write_face(out: Path, face, meta: dict, fmt: str, protect=()) -> None:
     center, extent = raster.framing(np.asarray(base.vertices, dtype=np.float64) @ pose.T)
     size = min(max(image.shape), 768)
     detailed = mesh.displace(base, face.image)
-    for name, shape in (("base", base), ("detailed", detailed)):
-        io.write_png(
-            out / f"{name}_shaded.png",
-            _views(shape.vertices, shape.faces, pose, center, extent, size),
-            metadata=meta,
-            protect=protect,
-        )
+    for name, shape, what in (
+        ("base", base, "Base mesh"),
+        ("detailed", detailed, "Base mesh re-displaced by its displacement image"),
+    ):
+        figure = _views(shape.vertices, shape.faces, pose, center, extent, size, what)
+        io.write_figure(out / f"{name}_shaded.png", figure, metadata=meta, protect=protect)
     arrays = {"markers": face.markers, "control": face.control}
     arrays |= {f"offsets_{k + 1}": o for k, o in enumerate(face.offsets)}
     meta = {**meta, "schedule": list(face.schedule)}
@@ -201,7 +202,13 @@ def _remesh(args: argparse.Namespace) -> dict:
     shaded = np.asarray(render.shade(result.image))[..., None]
     red = np.asarray([1.0, 0.15, 0.1])
     tinted = shaded * (1 - filled[..., None]) + red * filled[..., None]
-    io.write_png(out / "filled.png", tinted, metadata=meta)
+    figure = plots.panel_grid(
+        [[tinted]],
+        title=f"Displacement image of {Path(args.scan).name}; red: filled where rays missed",
+        col_labels=[f"{np.mean(filled > 0.5):.2%} filled"],
+        panel_inches=4.0,
+    )
+    io.write_figure(out / "filled.png", figure, metadata=meta)
     missed = int(np.sum(np.asarray(result.missed)))
     return {
         "out": str(out),
@@ -228,8 +235,8 @@ def _landmarks(args: argparse.Namespace) -> dict:
         meta = io.provenance(
             seed=args.seed, source=Path(args.scan).name, score=round(float(found.score), 4)
         )
-        picture = landmark_picture(scan.vertices, scan.faces, found)
-        io.write_png(args.picture, picture, metadata=meta, protect=(args.scan,))
+        figure = landmark_picture(scan.vertices, scan.faces, found)
+        io.write_figure(args.picture, figure, metadata=meta, protect=(args.scan,))
     return {
         "out": args.out,
         "picture": args.picture,
@@ -241,13 +248,8 @@ def _landmarks(args: argparse.Namespace) -> dict:
     }
 
 
-def landmark_picture(vertices, faces, found, size: int = 640) -> np.ndarray:
-    """The scan shaded from the fitted face's front, the markers drawn with their names."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def landmark_picture(vertices, faces, found, size: int = 640):
+    """Figure of the scan shaded from the fitted face's front, the markers with their names."""
     rotation = np.asarray(found.rotation, dtype=np.float64)
     # The model's axes (right, up, front) → the camera's (x, y, z): a frontal view.
     posed = np.asarray(vertices, dtype=np.float64) @ rotation
@@ -259,28 +261,12 @@ def landmark_picture(vertices, faces, found, size: int = 640) -> np.ndarray:
         np.vstack([posed, points]), (size, size), center=center, extent=extent
     )
     screen = screen[-len(points) :]
-    fig, ax = plt.subplots(figsize=(7, 7), dpi=100)
-    ax.imshow(np.asarray(image), cmap="gray", vmin=0, vmax=1)
-    ax.scatter(screen[:, 0], screen[:, 1], s=18, c="red", edgecolors="white", linewidths=0.5)
-    for (x, y), name in zip(screen[:, :2], found.names, strict=True):
-        ax.annotate(
-            name,
-            (x, y),
-            (4, -4),
-            textcoords="offset points",
-            fontsize=7,
-            color="yellow",
-            bbox={"boxstyle": "round,pad=0.1", "fc": "black", "alpha": 0.55, "lw": 0},
-        )
-    ax.set_title(
-        f"landmarks found by fitting the face model (score {float(found.score):.3f})", fontsize=10
+    return plots.labelled_points(
+        np.asarray(image),
+        screen[:, :2],
+        list(found.names),
+        title=f"Landmarks found by fitting the face model (score {float(found.score):.3f})",
     )
-    ax.set_axis_off()
-    fig.tight_layout()
-    fig.canvas.draw()
-    picture = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float32) / 255.0
-    plt.close(fig)
-    return picture
 
 
 def _displace(args: argparse.Namespace) -> dict:
@@ -321,11 +307,20 @@ def demo(out: Path, seed: int) -> None:
     known = np.asarray(sampler(mesh.known_displacement(synthetic, result.base)))
     offset = np.asarray(sampler(mesh.smooth_offset(synthetic, result.base)))
     io.write_exr(out / "known_displacement.exr", known, metadata=meta)
-    pair = render.strip([render.shade(known), render.shade(np.asarray(result.image))])
-    io.write_png(out / "known_vs_recovered.png", pair, metadata=meta)
     inside = (slice(51, -51), slice(51, -51))
     image = np.asarray(result.image)[inside].ravel()
     corr = [np.corrcoef(t[inside].ravel(), image)[0, 1] for t in (known, known + offset)]
+    recovered = np.asarray(result.image)
+    figure = plots.panel_grid(
+        [[render.shade(known), render.shade(recovered)], [known, recovered]],
+        title=f"Remeshing a synthetic scan: known and recovered detail (correlation {corr[0]:.3f})",
+        col_labels=["known", "recovered"],
+        row_labels=["shaded relief", "displacement"],
+        quantities=["relief", "displacement"],
+        units=[None, "displacement (scan units)"],
+        panel_inches=2.6,
+    )
+    io.write_figure(out / "known_vs_recovered.png", figure, metadata=meta)
     print(
         f"mesh: remeshed a {scan.faces.shape[0]}-triangle synthetic scan in {seconds:.1f} s "
         f"({result.base.faces.shape[0]}-triangle base mesh); recovered vs known detail "

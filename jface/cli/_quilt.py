@@ -18,12 +18,10 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from jface import faces, io
+from jface import faces, io, plots
 from jface.faces import _editing, _patches, _quilting
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
-#: Default width of a figure of faces, in pixels: small aligned faces (25 px) are enlarged to it.
-FIGURE_SIDE = 512
 
 
 def _library_args(p: argparse.ArgumentParser) -> None:
@@ -40,8 +38,8 @@ def _library_args(p: argparse.ArgumentParser) -> None:
         "--upscale",
         type=int,
         default=None,
-        help="pixel-repeat factor of the figures (default: the smallest that makes them "
-        f"{FIGURE_SIDE} pixels or more across; the face PNGs keep their size)",
+        help="draw the faces of the figures N times larger (default: 1; the face PNGs keep "
+        "their size)",
     )
     p.add_argument("--patch", type=int, default=None, help="patch size (default: quarter overlap)")
     p.add_argument("--translations", type=int, default=1, help="largest patch shift, pixels")
@@ -161,12 +159,9 @@ def read_faces(names: list[str], grey: bool) -> tuple[np.ndarray, list[Path]]:
     return np.stack(images).astype(np.float32), files
 
 
-def enlarge(figure: np.ndarray, upscale: int | None) -> np.ndarray:
-    """``figure`` with every pixel repeated ``upscale`` times along both axes (default: the
-    smallest factor that makes it :data:`FIGURE_SIDE` pixels or more across)."""
-    if upscale is None:
-        upscale = -(-FIGURE_SIDE // max(figure.shape[:2]))
-    return np.repeat(np.repeat(figure, upscale, axis=0), upscale, axis=1)
+def panel_inches(upscale: int | None) -> float:
+    """Side of one face panel in a figure, in inches: ``upscale`` times the default."""
+    return plots.PANEL_INCHES * (upscale or 1)
 
 
 def _grid(args: argparse.Namespace, shape: tuple[int, int]) -> int:
@@ -220,19 +215,6 @@ def pca_fill(image: np.ndarray, mask: np.ndarray, images: np.ndarray, n_componen
     a = basis[seen]
     h = np.linalg.solve(a.T @ a + np.eye(k), a.T @ (image.ravel()[seen] - mean[seen]))
     return np.clip(mean + basis @ h, 0, 1).reshape(image.shape).astype(np.float32)
-
-
-def montage(images: np.ndarray, columns: int | None = None, gap: int = 2) -> np.ndarray:
-    """Tile ``(n, H, W[, C])`` images into one grid image with white gaps."""
-    n, h, w = images.shape[:3]
-    columns = columns or int(np.ceil(np.sqrt(n)))
-    rows = -(-n // columns)
-    shape = (rows * (h + gap) - gap, columns * (w + gap) - gap, *images.shape[3:])
-    out = np.ones(shape, np.float32)
-    for i, im in enumerate(images):
-        r, c = divmod(i, columns)
-        out[r * (h + gap) : r * (h + gap) + h, c * (w + gap) : c * (w + gap) + w] = im
-    return out
 
 
 def colour_sources(sources: np.ndarray) -> np.ndarray:
@@ -323,18 +305,16 @@ def _write_samples(args, images, library, files, result, targets, settings) -> d
     smaps = np.asarray(faces.source_map(result, library))
     for i in range(args.n):
         io.write_png(out / f"face_{i:03d}.png", np.asarray(result.image[i]), metadata=meta)
-    io.write_png(
-        out / "faces.png", enlarge(montage(np.asarray(result.image)), args.upscale), metadata=meta
-    )
-    io.write_png(out / "targets.png", enlarge(montage(targets), args.upscale), metadata=meta)
-    io.write_png(
-        out / "quilted.png",
-        enlarge(montage(np.asarray(result.quilted)), args.upscale),
-        metadata=meta,
-    )
-    io.write_png(
-        out / "sources.png", enlarge(montage(colour_sources(smaps)), args.upscale), metadata=meta
-    )
+    for name, pictures, title in (
+        ("faces.png", result.image, "Synthesised faces (quilted, Poisson-blended)"),
+        ("targets.png", targets, "Global targets drawn from the factor analyser"),
+        ("quilted.png", result.quilted, "Quilted faces before blending"),
+        ("sources.png", colour_sources(smaps), "Source training image of each pixel (colour)"),
+    ):
+        figure = plots.image_grid(
+            list(np.asarray(pictures)), title=title, panel_inches=panel_inches(args.upscale)
+        )
+        io.write_figure(out / name, figure, metadata=meta)
     nearest = [faces.nearest_training(result.image[i], images)[1] for i in range(args.n)]
     summary = {
         "out": str(out),
@@ -402,12 +382,15 @@ def _inpaint(args: argparse.Namespace) -> dict:
     holed = np.where(mask if face.ndim == 2 else mask[..., None], 1.0, face)
     for i in range(args.n):
         io.write_png(out / f"inpainted_{i:03d}.png", np.asarray(result.image[i]), metadata=meta)
-    panel = np.concatenate([face[None], holed[None], target[None], np.asarray(result.image)])
-    io.write_png(
-        out / "inpainting.png",
-        enlarge(montage(panel, columns=len(panel)), args.upscale),
-        metadata=meta,
+    figure = plots.panel_grid(
+        [[face, holed, target, *np.asarray(result.image)]],
+        title="Inpainting: the hole filled by quilting towards the global model's fill",
+        col_labels=["input", "hole", "global fill"]
+        + [f"hypothesis {i + 1}" for i in range(args.n)],
+        quantities="image",
+        panel_inches=panel_inches(args.upscale),
     )
+    io.write_figure(out / "inpainting.png", figure, metadata=meta)
     return {"out": str(out), "hypotheses": args.n, "training": len(files)}
 
 
@@ -429,8 +412,14 @@ def _edit(args: argparse.Namespace) -> dict:
     out = Path(args.out)
     meta = io.provenance(seed=args.seed, image=Path(args.image).name, lam=args.lam)
     io.write_png(out / "edited.png", np.asarray(result.image), metadata=meta)
-    panel = np.stack([face, painted, np.asarray(result.image)])
-    io.write_png(out / "edit.png", enlarge(montage(panel, columns=3), args.upscale), metadata=meta)
+    figure = plots.panel_grid(
+        [[face, painted, np.asarray(result.image)]],
+        title="Guided edit: a painted face made realistic by quilting",
+        col_labels=["input", "painted", "edited"],
+        quantities="image",
+        panel_inches=panel_inches(args.upscale),
+    )
+    io.write_figure(out / "edit.png", figure, metadata=meta)
     return {"out": str(out)}
 
 
@@ -453,10 +442,14 @@ def _restyle(args: argparse.Namespace) -> dict:
     out = Path(args.out)
     meta = io.provenance(seed=args.seed, image=Path(args.image).name, model=Path(args.model).name)
     io.write_png(out / "restyled.png", np.asarray(result.image), metadata=meta)
-    panel = np.stack([face, np.asarray(prediction), np.asarray(result.image)])
-    io.write_png(
-        out / "restyle.png", enlarge(montage(panel, columns=3), args.upscale), metadata=meta
+    figure = plots.panel_grid(
+        [[face, np.asarray(prediction), np.asarray(result.image)]],
+        title=f"Style change: {args.source} → {args.target}",
+        col_labels=["input", "predicted by the style model", "restyled"],
+        quantities="image",
+        panel_inches=panel_inches(args.upscale),
     )
+    io.write_figure(out / "restyle.png", figure, metadata=meta)
     return {"out": str(out)}
 
 
@@ -472,15 +465,15 @@ def demo(out: Path, seed: int) -> None:
     keys = jax.random.split(jax.random.key(seed), 8)
     result, targets, _ = jax.vmap(lambda k: faces.synthesize(k, library, model))(keys)
     local = jax.vmap(lambda k, t: faces.quilt(k, library, t, lam=0.0))(keys, targets)
-    rows = np.concatenate(
-        [
-            np.asarray(targets),
-            np.asarray(local.image),
-            np.asarray(result.quilted),
-            np.asarray(result.image),
-        ]
-    )
+    rows = [list(np.asarray(x)) for x in (targets, local.image, result.quilted, result.image)]
     out = Path(out) / "quilt"
     meta = io.provenance(seed=seed, source="jface/data/ict_face_small.npz renders")
-    io.write_png(out / "faces.png", montage(rows, columns=8), metadata=meta)
+    figure = plots.panel_grid(
+        rows,
+        title="Face synthesis by non-stationary quilting (Mohammed et al. 2009 Fig. 5)",
+        row_labels=["global target", "local only (λ = 0)", "quilted", "blended"],
+        quantities="image",
+        panel_inches=1.0,
+    )
+    io.write_figure(out / "faces.png", figure, metadata=meta)
     print(f"quilt: global targets, local-only, quilted, blended faces in {out}/faces.png")

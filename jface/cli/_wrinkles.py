@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
+from jface import plots
 from jface.cli import _fit, deprecated_alias
 from jface.io import (
     check_output,
@@ -25,6 +26,7 @@ from jface.io import (
     read_mesh,
     save_arrays,
     write_exr,
+    write_figure,
     write_json,
     write_mesh,
     write_png,
@@ -236,9 +238,15 @@ def _simulate(args: argparse.Namespace) -> dict:
     )
     save_arrays(out / "wrinkles.npz", arrays, meta, kind="WrinkleGraph")
     write_json(out / "params.json", {"kind": "WrinkleParams", "levels": meta["levels"]})
-    picture = draw_graph(results, args.size, args.periodic)
-    write_png(out / "wrinkles.png", picture, metadata=meta)
     counts = ", ".join(f"{int(r[0].count)} pores/{int(r[1].edge_count)} edges" for r in results)
+    figure = plots.panel_grid(
+        [[draw_graph(results, args.size, args.periodic)]],
+        title="Pore graph after trail formation (Weiss et al. 2023 §3.1): darker = heavier edge",
+        col_labels=[counts],
+        quantities="image",
+        panel_inches=6.0,
+    )
+    write_figure(out / "wrinkles.png", figure, metadata=meta)
     return {"out": str(out), "counts": counts, "seconds": time.perf_counter() - start}
 
 

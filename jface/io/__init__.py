@@ -8,11 +8,13 @@ until the command succeeds (see :mod:`jface.io._files`).
 
 from jface.io._arrays import load_arrays, save_arrays
 from jface.io._exr import ExrImage, exr_rows, map_shape, read_exr, read_map, write_exr
+from jface.io._figures import write_figure
 from jface.io._files import (
     atomic_path,
     check_output,
     commit,
     content_key,
+    discard,
     own_outputs,
     session,
     write_json,
@@ -29,6 +31,7 @@ __all__ = [
     "check_output",
     "commit",
     "content_key",
+    "discard",
     "exr_rows",
     "load_arrays",
     "map_shape",
@@ -43,6 +46,7 @@ __all__ = [
     "save_arrays",
     "session",
     "write_exr",
+    "write_figure",
     "write_json",
     "write_landmarks",
     "write_mesh",

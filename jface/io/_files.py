@@ -97,6 +97,14 @@ def commit() -> None:
         current.commit()
 
 
+def discard() -> None:
+    """Remove the outputs staged since the last :func:`commit` of the current :func:`session`
+    (a failed step's), so that what follows can still be committed."""
+    current = _active.get()
+    if current is not None:
+        current.discard()
+
+
 @contextlib.contextmanager
 def own_outputs() -> Iterator[None]:
     """Reads inside the block are of outputs of this command or an earlier run of it (a cache,

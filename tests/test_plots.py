@@ -1,0 +1,235 @@
+"""Figures (jface.plots, jface.io.write_figure) and the run page (index.html)."""
+
+import html.parser
+import json
+import sys
+import types
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+import pytest
+from PIL import Image
+
+from jface import detail, io, plots
+from jface.cli import _report, main
+
+
+def _titled(figure) -> bool:
+    return figure._suptitle is not None and figure._suptitle.get_text().strip() != ""
+
+
+def _value_images_have_colour_bars(figure) -> bool:
+    """Every 2-D array drawn with a colour map (not grey relief) shares its scale with a
+    colour bar of the figure."""
+    with_bar = {id(im.norm) for ax in figure.axes for im in ax.images if im.colorbar is not None}
+    for ax in figure.axes:
+        for im in ax.images:
+            encodes_value = im.get_array().ndim == 2 and im.get_cmap().name != "gray"
+            if encodes_value and id(im.norm) not in with_bar:
+                return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def stats(gravel):
+    return detail.analyze(np.asarray(gravel[:64, :64]), grid=4, n_scales=2)
+
+
+def _figures(gravel, stats):
+    patch = np.asarray(gravel[:32, :32])
+    errors = [np.linspace(0, 1, 16).reshape(4, 4)] * 3
+    history = np.minimum.accumulate(np.linspace(1.0, 0.01, 30)[None] * [[1.0], [2.0]], axis=1)
+    return {
+        "method_comparison": plots.method_comparison(
+            [patch] * 3, errors, ["young", "old", "aged"], title="Methods"
+        ),
+        "band_statistics": plots.band_statistics(stats.std, stats.n_orientations, title="Bands"),
+        "convergence": plots.convergence(history, title="Convergence"),
+        "heatmap": plots.heatmap(
+            np.eye(2) + 0.5, title="Ratios", row_labels=["a", "b"], col_labels=["0°", "90°"]
+        ),
+        "image": plots.image(patch, title="Displacement", units="mm"),
+        "lines": plots.lines([1.0, 2.0], {"x": [1.0, 2.0]}, title="t", xlabel="x", ylabel="y"),
+    }
+
+
+def test_every_figure_has_a_title_and_colour_bars_where_colour_encodes_a_value(gravel, stats):
+    for name, figure in _figures(gravel, stats).items():
+        assert _titled(figure), name
+        assert _value_images_have_colour_bars(figure), name
+
+
+def test_the_checker_sees_a_missing_colour_bar():
+    figure = plots.panel_grid([[np.eye(4)]], title="t", quantities="error")
+    assert _value_images_have_colour_bars(figure)
+    bare = matplotlib.figure.Figure()
+    bare.subplots().imshow(np.eye(4), cmap="magma")
+    assert not _value_images_have_colour_bars(bare)
+
+
+def test_panel_grid_labels_rows_columns_and_units():
+    figure = plots.panel_grid(
+        [[np.eye(4), np.eye(4)], [np.ones((4, 4, 3)), None]],
+        title="Grid",
+        col_labels=["left", "right"],
+        row_labels=["values", "colour"],
+        quantities=["displacement", "relief"],
+        units=["mm", None],
+    )
+    titles = [ax.get_title() for ax in figure.axes]
+    assert "left" in titles and "right" in titles
+    assert {ax.get_ylabel() for ax in figure.axes} >= {"values", "colour"}
+    bars = [im.colorbar for ax in figure.axes for im in ax.images if im.colorbar is not None]
+    assert len(bars) == 1 and bars[0].ax.get_ylabel() == "mm"
+    # Signed displacement is centred on zero: the colour scale is symmetric.
+    norm = bars[0].mappable.norm
+    assert norm.vmin == -norm.vmax == -1.0
+
+
+def test_convergence_draws_one_labelled_line_per_trial_on_a_log_axis():
+    history = np.array([[1.0, 0.5, 0.1], [2.0, 0.2, 0.05], [1.5, 1.0, np.inf]])
+    figure = plots.convergence(history, title="Fit")
+    ax = figure.axes[0]
+    assert [line.get_label() for line in ax.get_lines()] == ["trial 1", "trial 2", "trial 3"]
+    assert ax.get_yscale() == "log" and ax.get_xlabel() == "epoch" and ax.get_ylabel()
+    np.testing.assert_array_equal(ax.get_lines()[1].get_ydata(), history[1])
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["trial 1", "trial 2", "trial 3"]
+
+
+def test_building_figures_leaves_no_global_state(gravel, stats):
+    import matplotlib.pyplot as plt
+
+    before = dict(matplotlib.rcParams)
+    _figures(gravel, stats)
+    assert plt.get_fignums() == []
+    assert dict(matplotlib.rcParams) == before
+
+
+@pytest.mark.parametrize("suffix", [".png", ".pdf", ".svg"])
+def test_write_figure_same_data_same_bytes_with_provenance(tmp_path, suffix):
+    meta = io.provenance(seed=3, experiment="test")
+
+    def make():
+        return plots.image(np.outer(np.arange(8.0), np.ones(8)) - 3, title="Ramp", units="mm")
+
+    a = io.write_figure(tmp_path / f"a{suffix}", make(), metadata=meta)
+    b = io.write_figure(tmp_path / f"b{suffix}", make(), metadata=meta)
+    assert a.read_bytes() == b.read_bytes()
+    if suffix == ".png":
+        with Image.open(a) as img:
+            assert json.loads(img.text["jface"]) == meta
+    else:
+        assert b"jface_version" in a.read_bytes()
+        assert b"CreationDate" not in a.read_bytes()
+
+
+def test_bad_figure_input_names_the_argument(tmp_path):
+    with pytest.raises(ValueError, match="quantities"):
+        plots.panel_grid([[np.eye(3)]], title="t", quantities="temperature")
+    with pytest.raises(ValueError, match="col_labels must have 2 entries"):
+        plots.panel_grid([[np.eye(3), np.eye(3)]], title="t", col_labels=["one"])
+    with pytest.raises(ValueError, match=r"rows\[0\]\[0\] must be finite"):
+        plots.panel_grid([[np.full((3, 3), np.nan)]], title="t")
+    with pytest.raises(TypeError, match=r"rows\[0\]\[0\] must be an image array"):
+        plots.panel_grid([["picture.png"]], title="t")
+    with pytest.raises(ValueError, match="series 'a' must have 2 values"):
+        plots.lines([1.0, 2.0], {"a": [1.0]}, title="t", xlabel="x", ylabel="y")
+    with pytest.raises(TypeError, match="matplotlib Figure"):
+        io.write_figure(tmp_path / "x.png", np.eye(3))
+    with pytest.raises(ValueError, match=r"must end in \.png or \.pdf or \.svg"):
+        io.write_figure(tmp_path / "x.jpg", plots.image(np.eye(3), title="t"))
+
+
+class _Links(html.parser.HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.images, self.links, self.text = [], [], []
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "img":
+            self.images.append(attrs["src"])
+        if tag == "a":
+            self.links.append(attrs["href"])
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def _parse(page: Path) -> _Links:
+    parser = _Links()
+    parser.feed(page.read_text(encoding="utf-8"))
+    return parser
+
+
+def test_index_names_only_existing_files_and_says_what_is_missing(tmp_path):
+    io.write_figure(tmp_path / "a" / "good.png", plots.image(np.eye(4), title="t"))
+    (tmp_path / "a" / "cut.png").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00")  # truncated
+    io.write_png(tmp_path / "s" / "sample_000.png", np.eye(4))
+    (tmp_path / "empty.json").write_bytes(b"")
+    page = _report.write_index(
+        tmp_path,
+        title="run",
+        provenance={"jface_version": "x", "seed": 0},
+        steps=[{"name": "one", "seconds": 1.5, "console": ["error 12.5%"]}],
+        expected=["a/good.png", "b/never.png"],
+    )
+    parsed = _parse(page)
+    assert parsed.images == ["a/good.png", "s/sample_000.png"]  # the figure, then the series
+    for name in parsed.images + parsed.links:
+        assert (tmp_path / name).is_file(), name
+    text = "".join(parsed.text)
+    assert "b/never.png" in text and "not written" in text
+    assert "a/cut.png" in text and "not a readable PNG" in text
+    assert "empty.json" in text and "empty file" in text
+    assert "error 12.5%" in text and "1.5" in text
+
+
+def test_demo_page_shows_steps_done_and_the_failed_one(tmp_path, monkeypatch, capsys):
+    def good(out, seed):
+        io.write_figure(Path(out) / "good" / "fig.png", plots.image(np.eye(4) * seed, title="t"))
+        print("good: error 3.0%")
+
+    def bad(out, seed):
+        io.write_json(Path(out) / "bad" / "partial.json", {})
+        raise ValueError("broken input")
+
+    modules = [
+        types.SimpleNamespace(
+            __name__=f"jface.cli._{f.__name__}", demo=f, register=lambda sub: None
+        )
+        for f in (good, bad)
+    ]
+    monkeypatch.setattr(sys.modules["jface.cli"], "_modules", lambda: modules)
+    assert main(["demo", "--out", str(tmp_path), "--seed", "2"]) == 2
+    page = tmp_path / "index.html"
+    parsed = _parse(page)
+    assert parsed.images == ["good/fig.png"]
+    assert not (tmp_path / "bad" / "partial.json").exists()  # the failed step's outputs go
+    for name in parsed.images + parsed.links:
+        assert (tmp_path / name).is_file(), name
+    text = "".join(parsed.text)
+    assert "good: error 3.0%" in text and "failed: ValueError: broken input" in text
+    assert "jface demo" in text
+
+
+def test_figures_of_analyze_and_db_compare(tmp_path, gravel, written_figures):
+    written = written_figures
+    maps, records = [], []
+    for i in range(3):
+        image = gravel[i * 32 : i * 32 + 64, :64].astype(np.float32) * (1 + i)
+        maps.append(str(io.write_exr(tmp_path / f"f{i}.exr", image)))
+        records.append({"id": f"f{i}", "age": 20 + 30 * i})
+    io.write_json(tmp_path / "meta.json", records)
+    assert main(["analyze", maps[0], "--out", str(tmp_path / "stats"), "--grid", "4"]) == 0
+    db = tmp_path / "db.npz"
+    build = ["db", "build", *maps, "--out", str(db), "--metadata", str(tmp_path / "meta.json")]
+    assert main([*build, "--grid", "4", "--scales", "2"]) == 0
+    groups = ["--group", "young:age=20..40", "--group", "old:age=41..80"]
+    assert main(["db", "compare", str(db), *groups, "--out", str(tmp_path / "cmp.png")]) == 0
+    assert set(written) == {"f0.stats.png", "cmp.png"}
+    for name, figure in written.items():
+        assert _titled(figure) and _value_images_have_colour_bars(figure), name
+    labels = {ax.get_ylabel() for ax in written["cmp.png"].axes}
+    assert {"young", "old"} <= labels
