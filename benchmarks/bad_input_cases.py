@@ -136,7 +136,9 @@ def db_compare_out_is_db(d):
 
 
 def _params(path: Path) -> Path:
-    path.write_text(json.dumps({"kind": "WrinkleParams", "levels": [{"d": 0.05}]}))
+    path.write_text(
+        json.dumps({"kind": "WrinkleParams", "units": {"frame": "uv"}, "levels": [{"d": 0.05}]})
+    )
     return path
 
 

@@ -46,7 +46,7 @@ def _good_files() -> dict[str, tuple[str, bytes]]:
         detail.Population.from_faces(stats, [{"id": 0}, {"id": 1}]).save(d / "p.npz")
         train = rng.random((5, 6, 6)).astype(np.float32)
         faces.save_model(d / "f.npz", faces.fit_factor_analyser(train, 2, n_iter=1).model)
-        wrinkles.save_params(d / "w.json", wrinkles.WrinkleParams(d=0.05))
+        wrinkles.save_params(d / "w.json", wrinkles.WrinkleParams(d=0.05), "uv")
         io.write_landmarks(d / "l.json", {n: i for i, n in enumerate(LANDMARK_NAMES)})
         (d / "l.csv").write_text("".join(f"{n},{i}\n" for i, n in enumerate(LANDMARK_NAMES)))
         tetra = (np.eye(4, 3), np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]))

@@ -89,7 +89,9 @@ def files(tmp_path):
     detail.Population.from_faces(stats, records).save(tmp_path / "pop.npz")
     train = RNG.random((6, 12, 12)).astype(np.float32)
     faces.save_model(tmp_path / "model.npz", faces.fit_factor_analyser(train, 2, n_iter=2).model)
-    (tmp_path / "p.json").write_text('{"kind": "WrinkleParams", "levels": [{"d": 0.05}]}')
+    (tmp_path / "p.json").write_text(
+        '{"kind": "WrinkleParams", "units": {"frame": "uv"}, "levels": [{"d": 0.05}]}'
+    )
     return {
         "m": io.write_exr(tmp_path / "m.exr", noise()),
         "png": io.write_png(tmp_path / "m.png", RNG.random((64, 64))),
@@ -551,7 +553,7 @@ def test_same_seed_same_bytes(files, tmp_path):
     f = files
     shutil.copy(f["png"], tmp_path / "n.png")
     (tmp_path / "levels.json").write_text(
-        '{"kind": "WrinkleParams", "levels": [{"d": 0.05, "theta": 0.5}]}'
+        '{"kind": "WrinkleParams", "units": {"frame": "uv"}, "levels": [{"d": 0.05, "theta": 0.5}]}'
     )
     commands = [
         ["synthesize", f["m"], "--stats", f["stats"], "--out", "{out}/s.exr", "--seed", "3",

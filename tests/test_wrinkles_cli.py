@@ -12,7 +12,7 @@ from jface.wrinkles import WrinkleParams, save_params
 
 def test_simulate_writes_graph_weights_and_picture(tmp_path, capsys, written_figures):
     params = tmp_path / "levels.json"
-    save_params(params, [WrinkleParams(d=0.04, theta=0.5, s=0.1), WrinkleParams(d=0.02)])
+    save_params(params, [WrinkleParams(d=0.04, theta=0.5, s=0.1), WrinkleParams(d=0.02)], "uv")
     out = tmp_path / "run"
     args = ["wrinkles", "simulate", "--out", str(out), "--params", str(params), "--cross", "0.5"]
     assert main([*args, "--periodic", "--size", "256", "--seed", "3"]) == 0  # converged
@@ -40,7 +40,7 @@ def test_render_and_extract(tmp_path, capsys):
     from jface.io import read_exr, read_json, write_exr
 
     params = tmp_path / "p.json"
-    save_params(params, [WrinkleParams(d=0.05, theta=0.5, s=0.2, pore_width=0.5, dmin=1.0)])
+    save_params(params, [WrinkleParams(d=0.05, theta=0.5, s=0.2, pore_width=0.5, dmin=1.0)], "uv")
     out = tmp_path / "w.exr"
     args = ["wrinkles", "render", "--params", str(params), "--size", "64", "--steps", "10"]
     assert main([*args, "--out", str(out), "--seed", "1", "--periodic"]) == 0

@@ -180,10 +180,10 @@ def test_parameters_validated_and_json_round_trip(tmp_path, unchecked):
         WrinkleParams(d=0.02, theta=np.full((2, 3), 0.5, np.float32)),
         WrinkleParams(d=0.01, sim=1.0),
     ]
-    back = params_from_json(params_to_json(levels))
+    back = params_from_json(params_to_json(levels, "uv"))
     for a, b in zip(levels, back, strict=True):
         jax.tree.map(np.testing.assert_array_equal, a, b)
-    save_params(tmp_path / "p.json", levels)
+    save_params(tmp_path / "p.json", levels, "uv")
     jax.tree.map(np.testing.assert_array_equal, levels[1], load_params(tmp_path / "p.json")[1])
     with pytest.raises(ValueError, match="not a WrinkleParams"):
         params_from_json('{"kind": "other"}')

@@ -14,7 +14,7 @@ from jface import plots
 from jface.cli import deprecated_alias
 from jface.io import check_output, provenance, read_map, write_figure, write_json
 from jface.render import shade
-from jface.wrinkles import fit_wrinkles, params_to_json
+from jface.wrinkles import ParamUnits, fit_wrinkles, params_to_json, parse_patch_size
 
 
 def register(subparsers) -> None:
@@ -27,6 +27,13 @@ def register(subparsers) -> None:
     parser.add_argument("patch", help="displacement patch: EXR (one channel), .npy or grey PNG")
     parser.add_argument("--out", required=True, help="output parameter file (.json)")
     parser.add_argument("--channel", help="EXR channel when the file has several")
+    parser.add_argument(
+        "--patch-size",
+        metavar="SIZE",
+        help="side of the (square) patch as a fraction of the face map's side, e.g. 256/4096 "
+        "for 256 px cut from a 4096² map: recorded so that 'wrinkles render' converts the "
+        "fitted lengths to the face (default: not recorded; render then needs --params-frame)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     parser.add_argument("--agents", type=int, default=50, help="swarm agents (default: 50)")
     parser.add_argument(
@@ -56,6 +63,26 @@ def register(subparsers) -> None:
     )
 
 
+def _units(patch_size: str | None, shape: tuple[int, int]) -> ParamUnits:
+    """The frame of the fitted lengths: the patch's unit square, of the given size on the face."""
+    if patch_size is None:
+        print(
+            "wrinkles fit: the patch's size on the face is not recorded (--patch-size); "
+            "'wrinkles render' will ask for it (--params-frame patch:SIZE)",
+            file=sys.stderr,
+        )
+        return ParamUnits("patch", None, shape)
+    if shape[0] != shape[1]:
+        raise ValueError(
+            f"--patch-size needs a square patch: the fit stretches its unit square over the "
+            f"{shape[0]}×{shape[1]} patch, so its lengths have no single size on the face"
+        )
+    try:
+        return ParamUnits("patch", parse_patch_size(patch_size), shape)
+    except ValueError as err:
+        raise ValueError(f"--patch-size: {err}") from None
+
+
 def _fit(args: argparse.Namespace) -> dict:
     out = check_output(args.out, (".json",))
     stem = out.with_suffix("")
@@ -66,6 +93,7 @@ def _fit(args: argparse.Namespace) -> dict:
         if getattr(args, name) < 1:
             raise ValueError(f"--{option} must be at least 1, got {getattr(args, name)}")
     patch = read_map(args.patch, args.channel)
+    units = _units(args.patch_size, patch.shape)
     total = args.trials * args.epochs
     # measured on 2 CPU cores: 0.12 s per agent and epoch at 256², plus 90 s of fixed cost
     minutes = (total * args.agents * 0.12 * patch.size / 256**2 + 90) / 60
@@ -99,7 +127,7 @@ def _fit(args: argparse.Namespace) -> dict:
         trials=args.trials, steps=args.steps, refine_steps=args.refine_steps,
         d_range=list(args.d_range), d_levels=args.d_levels,
     )  # fmt: skip
-    document = json.loads(params_to_json(list(fit.levels)))
+    document = json.loads(params_to_json(list(fit.levels), units))
     document |= {
         "fit": {
             "loss": float(fit.loss),

@@ -33,6 +33,7 @@ from jface.io import (
 )
 from jface.render import shade
 from jface.wrinkles import (
+    ParamUnits,
     PoreGraph,
     Pores,
     Simulated,
@@ -72,6 +73,7 @@ def register(subparsers) -> None:
     )
     sim.add_argument("--out", required=True, help="output folder")
     sim.add_argument("--params", help="JSON file of WrinkleParams levels (coarse to fine)")
+    _params_frame_option(sim)
     for name in _OVERRIDES:
         sim.add_argument(
             f"--{name}",
@@ -96,8 +98,11 @@ def register(subparsers) -> None:
         "optionally blended with a scan's displacement and applied to a mesh",
     )
     ren.add_argument(
-        "--params", help="JSON file of WrinkleParams levels (required without --simulation)"
+        "--params",
+        help="JSON file of WrinkleParams levels (required without --simulation); lengths are "
+        "converted from the file's frame (its 'units') to the map's unit square",
     )
+    _params_frame_option(ren)
     ren.add_argument(
         "--simulation",
         metavar="DIR",
@@ -153,10 +158,33 @@ def register(subparsers) -> None:
     _fit.register(sub)
 
 
+def _params_frame_option(parser) -> None:
+    parser.add_argument(
+        "--params-frame",
+        metavar="FRAME",
+        help="frame of a --params file that states none (older jface; a fit without "
+        "--patch-size): 'uv' = the whole map's unit square, 'patch:SIZE' = a patch whose side "
+        "is SIZE of the map's, e.g. patch:256/4096 (default: the file's own 'units')",
+    )
+
+
+def _load_levels(args) -> list[WrinkleParams]:
+    """The --params levels in the map's unit square."""
+    frame = None
+    if args.params_frame is not None:
+        try:
+            frame = ParamUnits.parse(args.params_frame)
+        except ValueError as err:
+            raise ValueError(f"--params-frame: {err}") from None
+    return load_params(args.params, frame=frame)
+
+
 def _levels(args) -> list[WrinkleParams]:
     if args.params:
-        levels = load_params(args.params)
+        levels = _load_levels(args)
     else:
+        if args.params_frame is not None:
+            raise ValueError("--params-frame states the frame of a --params file; give --params")
         if not 1 <= args.levels <= 4:
             raise ValueError(f"--levels must be in [1, 4], got {args.levels}")
         base = 0.02 if args.d is None else args.d
@@ -237,7 +265,7 @@ def _simulate(args: argparse.Namespace) -> dict:
         k=args.k,
     )
     save_arrays(out / "wrinkles.npz", arrays, meta, kind="WrinkleGraph")
-    write_json(out / "params.json", {"kind": "WrinkleParams", "levels": meta["levels"]})
+    save_params(out / "params.json", levels, "uv")
     counts = ", ".join(f"{int(r[0].count)} pores/{int(r[1].edge_count)} edges" for r in results)
     figure = plots.panel_grid(
         [[draw_graph(results, args.size, args.periodic)]],
@@ -262,7 +290,8 @@ def _render(args: argparse.Namespace) -> dict:
     if (args.params is None) == (args.simulation is None):
         raise ValueError("give --params (simulate here) or --simulation (reuse a simulation)")
     if args.simulation:
-        clash = [f"--{n}" for n in ("pores", "mesh", "steps", "samples") if getattr(args, n)]
+        names = ("pores", "mesh", "steps", "samples", "params_frame")
+        clash = [f"--{n.replace('_', '-')}" for n in names if getattr(args, n)]
         if clash or args.size > BANDED_ABOVE:
             raise ValueError(
                 f"--simulation draws a finished simulation: {clash or '--size above 4096'} "
@@ -271,7 +300,7 @@ def _render(args: argparse.Namespace) -> dict:
         levels, simulated, sim_meta = _read_simulation(args.simulation)
         args.seed, args.periodic = int(sim_meta["seed"]), bool(sim_meta["periodic"])
     else:
-        levels = load_params(args.params)
+        levels = _load_levels(args)
     base = read_map(args.base) if args.base else None
     if base is not None and base.shape != (args.size, args.size):
         raise ValueError(f"--base is {base.shape}, expected ({args.size}, {args.size}) (--size)")
@@ -328,7 +357,8 @@ def _read_simulation(folder: str):
     """Levels, simulated graphs and weights, and the provenance of a ``wrinkles simulate``
     folder."""
     arrays, meta = load_arrays(Path(folder) / "wrinkles.npz", kind="WrinkleGraph")
-    levels = load_params(Path(folder) / "params.json")
+    # 'simulate' simulates the unit square: its params.json is in that frame, stated or not
+    levels = load_params(Path(folder) / "params.json", frame="uv")
     simulated = []
     periodic = bool(meta["periodic"])
     for i in range(len(levels)):
@@ -402,7 +432,7 @@ def _extract(args: argparse.Namespace) -> dict:
     start = time.perf_counter()
     orient = extract_orientation(coarse, crop=args.crop, frequency=args.frequency)
     pores = find_pores(coarse, threshold=args.threshold)
-    save_params(out, WrinkleParams(d=args.d, theta=np.asarray(orient.theta)))
+    save_params(out, WrinkleParams(d=args.d, theta=np.asarray(orient.theta)), "uv")
     n = int(pores.count)
     write_json(
         pores_out,

@@ -10,7 +10,9 @@ Pipeline of §3.1, one level::
 
 A finer level starts from the coarser pores: ``sample_pores(key, d2, initial=pores)``.
 All positions are ``(x, y)`` in the unit square; textures ``(H, W)`` cover it with ``x`` along
-columns and ``y`` along rows.
+columns and ``y`` along rows. Parameter files state the frame of their lengths (:class:`ParamUnits`:
+a whole map's unit square, or a patch of a known size on the face) and :func:`load_params`
+converts them to the map they are drawn on.
 """
 
 from jface.wrinkles._drawing import (
@@ -39,13 +41,18 @@ from jface.wrinkles._fit import PAPER_NAMES, WrinkleFit, fit_wrinkles
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
 from jface.wrinkles._mesh_radius import radius_map_from_mesh
 from jface.wrinkles._params import (
+    FRAMES,
+    LENGTH_POWERS,
     PARAMETER_RANGES,
+    ParamUnits,
     WrinkleParams,
     load_params,
     params_from_json,
     params_to_json,
+    parse_patch_size,
     save_params,
     stack_params,
+    to_map_frame,
 )
 from jface.wrinkles._sampling import Pores, default_capacity, make_pores, sample_pores
 from jface.wrinkles._simulation import (
@@ -73,6 +80,8 @@ from jface.wrinkles._variation import perlin_variation
 
 __all__ = [
     "BETA",
+    "FRAMES",
+    "LENGTH_POWERS",
     "N_HAT",
     "N_SAMPLES",
     "PAPER_NAMES",
@@ -81,6 +90,7 @@ __all__ = [
     "GraphSpec",
     "Level",
     "Orientations",
+    "ParamUnits",
     "PoreCandidates",
     "PoreGraph",
     "Pores",
@@ -115,6 +125,7 @@ __all__ = [
     "orientation_weight",
     "params_from_json",
     "params_to_json",
+    "parse_patch_size",
     "perlin_variation",
     "pore_strength",
     "radius_map_from_mesh",
@@ -127,4 +138,5 @@ __all__ = [
     "stack_params",
     "synthesize",
     "synthesize_bands",
+    "to_map_frame",
 ]
