@@ -6,7 +6,7 @@ import numpy as np
 
 import jface
 from jface.cli import main
-from jface.io import load_arrays, read_image, read_mesh
+from jface.io import load_arrays, read_image, read_json, read_mesh
 from jface.wrinkles import WrinkleParams, save_params
 
 
@@ -19,6 +19,7 @@ def test_simulate_writes_graph_weights_and_picture(tmp_path, capsys, written_fig
     arrays, meta = load_arrays(out / "wrinkles.npz", kind="WrinkleGraph")
     assert meta["seed"] == 3 and len(meta["levels"]) == 2
     assert meta["levels"][0]["cross"] == 0.5 and meta["levels"][1]["d"] == 0.02
+    assert read_json(out / "params.json")["units"] == {"frame": "uv"}
     n0 = len(arrays["level0_positions"])
     np.testing.assert_array_equal(arrays["level1_positions"][:n0], arrays["level0_positions"])
     for i in range(2):
@@ -37,7 +38,7 @@ def test_bad_parameters_exit_with_a_message(tmp_path, capsys):
 
 
 def test_render_and_extract(tmp_path, capsys):
-    from jface.io import read_exr, read_json, write_exr
+    from jface.io import read_exr, write_exr
 
     params = tmp_path / "p.json"
     save_params(params, [WrinkleParams(d=0.05, theta=0.5, s=0.2, pore_width=0.5, dmin=1.0)], "uv")
@@ -55,6 +56,7 @@ def test_render_and_extract(tmp_path, capsys):
     assert main(["wrinkles", "extract", str(out), "--out", str(tmp_path / "e.json"),
                  "--crop", "32", "--threshold", "0.5"]) == 0  # fmt: skip
     levels = read_json(tmp_path / "e.json")["levels"]
+    assert read_json(tmp_path / "e.json")["units"] == {"frame": "uv"}
     assert np.asarray(levels[0]["theta"]).shape == (2, 2)
     assert read_json(tmp_path / "e_pores.json")["kind"] == "Pores"
     # on the built-in UV-mapped MediaPipe face: pores spaced by its UV stretch, mesh displaced

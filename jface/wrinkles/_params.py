@@ -475,8 +475,7 @@ def _agreed(stated: ParamUnits | None, given: ParamUnits | None, source: str) ->
     if given.frame != stated.frame or (size_known and given.patch_size != stated.patch_size):
         raise ValueError(
             f"{source}: the file states units {stated.to_dict()}, but the frame given is "
-            f"{given.to_dict()}: "
-            "drop the given frame or correct the file"
+            f"{given.to_dict()}: drop the given frame or correct the file"
         )
     return dataclasses.replace(stated, patch_size=given.patch_size)
 
