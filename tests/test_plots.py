@@ -9,26 +9,11 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 import pytest
+from conftest import titled, value_images_have_colour_bars
 from PIL import Image
 
-from jface import detail, io, plots
+from jface import detail, faces, io, plots
 from jface.cli import _report, main
-
-
-def _titled(figure) -> bool:
-    return figure._suptitle is not None and figure._suptitle.get_text().strip() != ""
-
-
-def _value_images_have_colour_bars(figure) -> bool:
-    """Every 2-D array drawn with a colour map (not grey relief) shares its scale with a
-    colour bar of the figure."""
-    with_bar = {id(im.norm) for ax in figure.axes for im in ax.images if im.colorbar is not None}
-    for ax in figure.axes:
-        for im in ax.images:
-            encodes_value = im.get_array().ndim == 2 and im.get_cmap().name != "gray"
-            if encodes_value and id(im.norm) not in with_bar:
-                return False
-    return True
 
 
 @pytest.fixture(scope="module")
@@ -56,16 +41,16 @@ def _figures(gravel, stats):
 
 def test_every_figure_has_a_title_and_colour_bars_where_colour_encodes_a_value(gravel, stats):
     for name, figure in _figures(gravel, stats).items():
-        assert _titled(figure), name
-        assert _value_images_have_colour_bars(figure), name
+        assert titled(figure), name
+        assert value_images_have_colour_bars(figure), name
 
 
 def test_the_checker_sees_a_missing_colour_bar():
     figure = plots.panel_grid([[np.eye(4)]], title="t", quantities="error")
-    assert _value_images_have_colour_bars(figure)
+    assert value_images_have_colour_bars(figure)
     bare = matplotlib.figure.Figure()
     bare.subplots().imshow(np.eye(4), cmap="magma")
-    assert not _value_images_have_colour_bars(bare)
+    assert not value_images_have_colour_bars(bare)
 
 
 def test_panel_grid_labels_rows_columns_and_units():
@@ -230,6 +215,67 @@ def test_figures_of_analyze_and_db_compare(tmp_path, gravel, written_figures):
     assert main(["db", "compare", str(db), *groups, "--out", str(tmp_path / "cmp.png")]) == 0
     assert set(written) == {"f0.stats.png", "cmp.png"}
     for name, figure in written.items():
-        assert _titled(figure) and _value_images_have_colour_bars(figure), name
+        assert titled(figure) and value_images_have_colour_bars(figure), name
     labels = {ax.get_ylabel() for ax in written["cmp.png"].axes}
     assert {"young", "old"} <= labels
+
+
+def _checked_page(run_dir: Path) -> tuple[_Links, str]:
+    """The parsed page of a run folder, after checking that every figure and file it names
+    exists; and its text."""
+    parsed = _parse(run_dir / "index.html")
+    for name in parsed.images + parsed.links:
+        assert (run_dir / name).is_file(), name
+    return parsed, "".join(parsed.text)
+
+
+def _maps(folder: Path, gravel, n: int) -> list[str]:
+    return [
+        str(io.write_exr(folder / f"m{i}.exr", gravel[64 * i : 64 * i + 64, :64].astype("f4")))
+        for i in range(n)
+    ]
+
+
+def test_commands_that_write_a_folder_write_its_page(tmp_path, gravel, capsys):
+    maps = _maps(tmp_path, gravel, 2)
+    stats = tmp_path / "stats"
+    argv = ["analyze", *maps, "--out", str(stats), "--grid", "4", "--scales", "2"]
+    assert main(argv) == 0
+    parsed, text = _checked_page(stats)
+    assert parsed.images == ["m0.stats.png", "m1.stats.png"]
+    assert parsed.links == ["m0.stats.npz", "m0.stats.png", "m1.stats.npz", "m1.stats.png"]
+    assert "analyzed 2 map(s), kept 0" in text and "--grid 4 --scales 2" in text
+    assert "Missing" not in text
+    assert main(argv) == 0  # a rerun keeps the maps done and refreshes the page
+    assert "analyzed 0 map(s), kept 2" in _checked_page(stats)[1]
+    # an image series (thumbnails) and its figure, the seed and the summary's numbers
+    train = np.random.default_rng(0).random((6, 6, 6)).astype(np.float32)
+    model = faces.save_model(tmp_path / "fa.npz", faces.fit_factor_analyser(train, 2).model)
+    samples = tmp_path / "samples"
+    argv = ["faces", "sample", str(model), "--n", "2", "--seed", "7", "--out", str(samples)]
+    assert main(argv) == 0
+    parsed, text = _checked_page(samples)
+    assert parsed.images == ["grid.png", "sample_000.png", "sample_001.png"]
+    assert "jface faces sample" in text and "seed7" in text.replace(" ", "")
+    # a command that writes one file writes no page beside it
+    assert main(["render", maps[0], "--out", str(tmp_path / "r.png")]) == 0
+    assert not (tmp_path / "index.html").exists()
+
+
+def test_a_batch_that_stopped_part_way_gets_a_page_that_says_what_is_missing(
+    tmp_path, gravel, capsys
+):
+    (good,) = _maps(tmp_path, gravel, 1)
+    cut = tmp_path / "cut.exr"
+    cut.write_bytes(Path(good).read_bytes()[:300])
+    out = tmp_path / "stats"
+    argv = ["analyze", good, str(cut), "--out", str(out), "--grid", "4", "--scales", "2"]
+    assert main(argv) == 2
+    assert "cut.exr is not a readable OpenEXR file" in capsys.readouterr().err
+    parsed, text = _checked_page(out)
+    assert parsed.images == ["m0.stats.png"]  # the map done before the failure stays
+    assert "cut.stats.npz" in text and "cut.stats.png" in text and "not written" in text
+    assert "failed: ValueError" in text
+    # a command refused before it wrote anything leaves no page, and no folder
+    assert main(["analyze", str(cut), "--out", str(tmp_path / "none")]) == 2
+    assert not (tmp_path / "none").exists()

@@ -40,6 +40,8 @@ class _Session:
     claimed: set[str] = dataclasses.field(default_factory=set)
     swept: set[str] = dataclasses.field(default_factory=set)  # folders cleared of dead temporaries
     staged: list[tuple[Path, Path]] = dataclasses.field(default_factory=list)
+    planned: dict[Path, None] = dataclasses.field(default_factory=dict)  # checked, in order
+    written: list[Path] = dataclasses.field(default_factory=list)  # committed
     tracking: bool = True
 
     def add_input(self, path: str | os.PathLike) -> None:
@@ -53,6 +55,7 @@ class _Session:
             except BaseException:  # an interrupt too: no temporary may stay behind
                 _remove(tmp for tmp, _ in staged[i:])
                 raise
+            self.written.append(path)
 
     def discard(self) -> None:
         staged, self.staged = self.staged, []
@@ -103,6 +106,15 @@ def discard() -> None:
     current = _active.get()
     if current is not None:
         current.discard()
+
+
+def session_outputs() -> tuple[list[Path], list[Path]]:
+    """The outputs of the current :func:`session`: those it checked or wrote (its planned
+    outputs, in order), and those it has put in place so far; both empty without a session."""
+    current = _active.get()
+    if current is None:
+        return [], []
+    return list(current.planned), list(current.written)
 
 
 @contextlib.contextmanager
@@ -192,6 +204,8 @@ def check_output(
         )
     current = _active.get()
     inputs = dict(current.inputs) if current is not None else {}
+    if current is not None:
+        current.planned[path] = None
     for other in protect:
         inputs.update(_identities(other))
     try:
