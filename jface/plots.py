@@ -338,7 +338,7 @@ def axes_grid(
     n_cols: int = 1,
     *,
     title: str,
-    size: tuple[float, float] = (6.4, 4.0),
+    size: tuple[int | float, int | float] = (6.4, 4.0),
     **subplots: Any,
 ) -> tuple[Figure, np.ndarray]:
     """A titled figure of empty axes (``(n_rows, n_cols)`` array), for drawings the functions
@@ -354,7 +354,7 @@ def axes_grid(
     """
     if not title or not str(title).strip():
         raise ValueError("title must be a non-empty text: every figure has one")
-    figure = _figure(*size)
+    figure = _figure(float(size[0]), float(size[1]))
     axes = figure.subplots(n_rows, n_cols, squeeze=False, **subplots)
     figure.suptitle(title, fontsize=11)
     return figure, axes

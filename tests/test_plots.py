@@ -36,6 +36,7 @@ def _figures(gravel, stats):
         ),
         "image": plots.image(patch, title="Displacement", units="mm"),
         "lines": plots.lines([1.0, 2.0], {"x": [1.0, 2.0]}, title="t", xlabel="x", ylabel="y"),
+        "axes_grid": plots.axes_grid(1, 2, title="Drawn")[0],
     }
 
 
@@ -82,6 +83,13 @@ def test_convergence_draws_one_labelled_line_per_trial_on_a_log_axis():
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["trial 1", "trial 2", "trial 3"]
 
 
+def test_axes_grid_gives_a_titled_figure_of_empty_axes_to_draw_on():
+    figure, axes = plots.axes_grid(2, 3, title="Custom", size=(6, 4), width_ratios=(1, 2, 1))
+    assert axes.shape == (2, 3) and figure.get_suptitle() == "Custom"
+    assert list(figure.get_size_inches()) == [6, 4]
+    assert not any(ax.lines or ax.images for ax in axes.ravel())
+
+
 def test_building_figures_leaves_no_global_state(gravel, stats):
     import matplotlib.pyplot as plt
 
@@ -120,6 +128,8 @@ def test_bad_figure_input_names_the_argument(tmp_path):
         plots.panel_grid([["picture.png"]], title="t")
     with pytest.raises(ValueError, match="series 'a' must have 2 values"):
         plots.lines([1.0, 2.0], {"a": [1.0]}, title="t", xlabel="x", ylabel="y")
+    with pytest.raises(ValueError, match="title must be a non-empty text"):
+        plots.axes_grid(title=" ")
     with pytest.raises(TypeError, match="matplotlib Figure"):
         io.write_figure(tmp_path / "x.png", np.eye(3))
     with pytest.raises(ValueError, match=r"must end in \.png or \.pdf or \.svg"):
