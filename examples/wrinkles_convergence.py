@@ -37,7 +37,8 @@ def crop_lines(ax, graph, weights, title, crop=CROP):
     lines = LineCollection(np.stack([a[keep], b[keep]], 1), colors="k", linewidths=2.5 * w[keep],
                            alpha=1.0)  # fmt: skip
     ax.add_collection(lines)
-    ax.set(xlim=(0, crop), ylim=(crop, 0), aspect="equal", title=title, xlabel="u", ylabel="v")
+    ax.set(xlim=(0, crop), ylim=(crop, 0), aspect="equal", xlabel="u", ylabel="v")
+    ax.set_title(title, fontsize=9)
 
 
 def main() -> None:
@@ -63,7 +64,8 @@ def main() -> None:
     bins = np.linspace(0, 1, 41)
     axes[0, 2].hist(short[:e], bins, alpha=0.6, label="50 steps")
     axes[0, 2].hist(full[:e], bins, alpha=0.6, label=f"converged ({steps} steps)")
-    axes[0, 2].set(title=f"edge weights, {e} edges, N = 50,000", xlabel="W", ylabel="edges")
+    axes[0, 2].set(xlabel="W", ylabel="edges")
+    axes[0, 2].set_title(f"edge weights, {e} edges, N = 50,000", fontsize=9)
     axes[0, 2].legend()
 
     small = build_graph(sample_pores(jax.random.key(3), 0.01, periodic=True))

@@ -56,8 +56,8 @@ def wrinkle(name, path, subdivisions, d, depth, yaw, size, seed, out):
         io.write_png(out / f"{name}_{tag}.png", image, metadata=meta)
     io.write_png(out / f"{name}_map.png", render.shade(disp), metadata=meta)
     figure = plots.image(
-        np.asarray(radius)[::-1], title=f"{name}: pore-radius scale R from the UV stretch",
-        quantity="statistics", units="R: local pore spacing / α_d", log=True,
+        np.asarray(radius)[::-1], title=f"{name}:\npore-radius scale R from the UV stretch",
+        quantity="statistics", units="R: local pore spacing / α_d",
     )  # fmt: skip
     io.write_figure(out / f"{name}_radius.png", figure, metadata=meta)
     io.write_exr(out / f"{name}_map.exr", disp, metadata=meta)
