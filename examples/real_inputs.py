@@ -86,12 +86,13 @@ def real_scan(out: Path, before: Path | None, size: int) -> None:
         if filled is None:
             row[3].axis("off")
         else:
-            shown = row[3].imshow(filled, cmap="magma", vmin=0, vmax=1)
+            shown = row[3].imshow(filled, cmap=plots.COLOUR_MAPS["weight"], vmin=0, vmax=1)
             row[3].set_title(f"filled where rays missed ({np.mean(filled > 0.5):.2%})")
             fig.colorbar(shown, ax=row[3], fraction=0.046, label="share of the pixel filled")
         for ax in row:
             ax.set_xticks([])
             ax.set_yticks([])
+            ax.title.set_fontsize(10)
     meta = io.provenance(source="lee_perry_smith_head.obj", image_size=size)
     io.write_figure(out / "mesh" / "real_scan.png", fig, metadata=meta)
 
@@ -128,7 +129,7 @@ def heterogeneous_synthesis(out: Path, size: int) -> None:
             ax.imshow(render.shade(panel), cmap="gray", vmin=0, vmax=1)
             ax.set_title(label, fontsize=10)
         for ax, (label, error) in zip(row[4:], errors, strict=True):
-            shown = ax.imshow(np.maximum(error, 1e-3), cmap="viridis", norm=norm)
+            shown = ax.imshow(np.maximum(error, 1e-3), cmap=plots.COLOUR_MAPS["error"], norm=norm)
             ax.set_title(f"{label}: per-tile error\n(largest over the bands)", fontsize=10)
         fig.colorbar(shown, ax=row[4:], fraction=0.05, label="|σ − τ| / τ")
         row[0].set_ylabel(name, fontsize=13)
