@@ -289,3 +289,16 @@ def test_a_batch_that_stopped_part_way_gets_a_page_that_says_what_is_missing(
     # a command refused before it wrote anything leaves no page, and no folder
     assert main(["analyze", str(cut), "--out", str(tmp_path / "none")]) == 2
     assert not (tmp_path / "none").exists()
+
+
+def test_the_page_never_replaces_an_input(tmp_path, gravel, capsys):
+    # a face folder of `jface remesh` (with its page) analysed into itself: the page is an input
+    face = tmp_path / "face"
+    io.write_exr(face / "displacement.exr", gravel[:64, :64].astype("f4"))
+    (face / "index.html").write_text("the remesh run's page")
+    assert main(["analyze", str(face), "--out", str(face), "--grid", "4", "--scales", "2"]) == 0
+    assert "warning: no index.html written: refusing to overwrite the input" in (
+        capsys.readouterr().err
+    )
+    assert (face / "index.html").read_text() == "the remesh run's page"
+    assert (face / "face.stats.png").is_file()
