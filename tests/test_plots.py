@@ -302,3 +302,12 @@ def test_the_page_never_replaces_an_input(tmp_path, gravel, capsys):
     )
     assert (face / "index.html").read_text() == "the remesh run's page"
     assert (face / "face.stats.png").is_file()
+
+
+def test_examples_draw_through_jface_plots():
+    """No example draws with pyplot or Pillow or saves a figure itself: figures come from
+    jface.plots and are written by io.write_figure (title, colour bars, provenance)."""
+    for path in sorted((Path(__file__).parents[1] / "examples").glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        for banned in ("pyplot", "from PIL", "import PIL", ".savefig(", "render.colormap("):
+            assert banned not in text, f"{path.name} uses {banned}"
