@@ -273,9 +273,9 @@ def test_commands_that_write_a_folder_write_its_page(tmp_path, gravel, capsys):
 
 
 def test_a_batch_that_stopped_part_way_gets_a_page_that_says_what_is_missing(
-    tmp_path, gravel, capsys
+    tmp_path, gravel, capsys, monkeypatch
 ):
-    (good,) = _maps(tmp_path, gravel, 1)
+    good, other = _maps(tmp_path, gravel, 2)
     cut = tmp_path / "cut.exr"
     cut.write_bytes(Path(good).read_bytes()[:300])
     out = tmp_path / "stats"
@@ -289,6 +289,20 @@ def test_a_batch_that_stopped_part_way_gets_a_page_that_says_what_is_missing(
     # a command refused before it wrote anything leaves no page, and no folder
     assert main(["analyze", str(cut), "--out", str(tmp_path / "none")]) == 2
     assert not (tmp_path / "none").exists()
+    # interrupted after the first map
+    real, done = detail.analyze, []
+
+    def analyze_once(*args, **kwargs):
+        if done:
+            raise KeyboardInterrupt
+        done.append(True)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(detail, "analyze", analyze_once)
+    out = tmp_path / "interrupted"
+    assert main(["analyze", good, other, "--out", str(out), "--grid", "4", "--scales", "2"]) == 130
+    parsed, text = _checked_page(out)
+    assert parsed.images == ["m0.stats.png"] and "interrupted" in text and "m1.stats.npz" in text
 
 
 def test_the_page_never_replaces_an_input(tmp_path, gravel, capsys):

@@ -225,7 +225,12 @@ def _command_page(args, command_line, seconds, console, *, summary=None, error=N
         return
     names = _inside(planned, run_dir)
     line = summary_text(summary, getattr(args, "prose", None)) if summary else None
-    status = "done" if error is None else f"failed: {type(error).__name__}: {error}"
+    if error is None:
+        status = "done"
+    elif isinstance(error, KeyboardInterrupt):
+        status = "interrupted"
+    else:
+        status = f"failed: {type(error).__name__}: {error}"
     step = {"name": args.page_title, "status": status, "seconds": seconds,
             "console": [*console, *([line] if line else [])]}  # fmt: skip
     meta = io.provenance(
