@@ -1,4 +1,4 @@
-"""The one way jface writes a file, and the record of what a command read.
+"""The one way jface writes a file, and the record of what a command read and wrote.
 
 Every writer of :mod:`jface.io` goes through :func:`atomic_path`: the bytes go to a temporary file
 beside the target (``.NAME~jface-HOST-PID-XXXXXXXX.EXT``), which is renamed onto the target only
@@ -12,7 +12,8 @@ is refused, and so is a second output under a name already written. Inputs are t
 to the session plus every file a reader of :mod:`jface.io` opened. Outputs are staged: their
 temporary files are renamed into place together when the session ends without an error (or at
 a :func:`commit`, the checkpoint of a resumable batch), and removed when it fails, so a failed
-command leaves nothing under its output names.
+command leaves nothing under its output names. :func:`session_outputs` tells what the session
+meant to write (every output it checked) and what it has put in place, for the run's page.
 """
 
 from __future__ import annotations
