@@ -24,11 +24,10 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib.pyplot as plt
 import numpy as np
 from skimage import data
 
-from jface import faces, io
+from jface import faces, io, plots
 
 SIZE = 64
 # eye centres, nose tip, mouth corners of the mean LFW crop at 64 × 64, (x, y) pixels
@@ -154,58 +153,46 @@ def main(out: Path, seed: int) -> None:
 
 def figure_grid(originals, warped, marks, aligned, made, unwarped, chosen, out, meta) -> None:
     show = 6
-    rows = [
-        ("LFW crops\n(ground truth)", originals[:show]),
-        ("warped: the\ntraining faces", warped[:show]),
-        ("aligned from\nlandmarks", aligned[:show]),
-        ("synthesised\n(template frame)", np.asarray(made)),
-        ("un-warped", np.asarray(unwarped)),
-        ("training face\nlending its frame", warped[np.asarray(chosen)]),
-    ]
-    fig, axes = plt.subplots(len(rows), show, figsize=(1.6 * show + 1.4, 1.7 * len(rows)))
-    for r, (label, images) in enumerate(rows):
-        for c in range(show):
-            ax = axes[r, c]
-            image = ax.imshow(np.clip(images[c], 0, 1), cmap="gray", vmin=0, vmax=1)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 1:
-                ax.plot(marks[c, :, 0], marks[c, :, 1], "+", color="tab:red", ms=6)
-            if r == 2:
-                ax.plot(*TEMPLATE_LANDMARKS.T, "+", color="tab:cyan", ms=6)
-            if r == 5:
-                ax.set_title(f"face {int(chosen[c])}", fontsize=8)
-            if r == 0:
-                ax.set_title(f"face {c}", fontsize=8)
-        axes[r, 0].set_ylabel(label, fontsize=9)
-    fig.colorbar(image, ax=axes, fraction=0.02, pad=0.02, label="intensity")
-    fig.suptitle(
-        "Visio-lization registration: random affine warps of real faces, aligned from landmarks\n"
-        "(red: marked with 0.25 px noise; cyan: template), synthesised, un-warped (§2.2, §4)",
-        fontsize=10,
+    rows = {
+        "LFW crops\n(ground truth)": originals[:show],
+        "warped: the\ntraining faces": warped[:show],
+        "aligned from\nlandmarks": aligned[:show],
+        "synthesised\n(template frame)": np.asarray(made),
+        "un-warped": np.asarray(unwarped),
+        "training face\nlending its frame": warped[np.asarray(chosen)],
+    }
+    figure = plots.panel_grid(
+        [list(np.clip(images[:show], 0, 1)) for images in rows.values()],
+        title="Visio-lization registration (Mohammed et al. 2009 §2.2, §4): random affine warps "
+        "of real faces,\naligned from landmarks (red: marked with 0.25 px noise; cyan: "
+        "template), synthesised, un-warped",
+        col_labels=[f"face {c}" for c in range(show)],
+        row_labels=list(rows),
+        quantities="image",
+        panel_inches=1.5,
     )
-    io.write_png(out / "alignment.png", _render(fig), metadata=meta)
+    axes = np.array(figure.axes).reshape(len(rows), show)
+    for c in range(show):
+        axes[1, c].plot(marks[c, :, 0], marks[c, :, 1], "+", color="tab:red", ms=6)
+        axes[2, c].plot(*TEMPLATE_LANDMARKS.T, "+", color="tab:cyan", ms=6)
+        axes[5, c].set_title(f"face {int(chosen[c])}", fontsize=8)
+    io.write_figure(out / "alignment.png", figure, metadata=meta)
 
 
 def figure_errors(errors: dict, out: Path, meta: dict) -> None:
-    fig, ax = plt.subplots(figsize=(7, 3.6))
+    figure, ((ax,),) = plots.axes_grid(
+        title="Recovery of 100 random affine warps of LFW faces (whiskers: min–max)",
+        size=(7, 3.8),
+    )
     names = list(errors)
     ax.boxplot([np.maximum(errors[n], 1e-6) for n in names], whis=(0, 100))
     ax.set_xticks(range(1, len(names) + 1), names, fontsize=8)
     ax.set_yscale("log")
     ax.axhline(1.0, color="tab:red", lw=1, ls="--", label="1 px")
+    ax.set_xlabel("how the faces were aligned")
     ax.set_ylabel("corner error (px, 64 × 64 frame)")
-    ax.set_title("Recovery of 100 random affine warps of LFW faces (whiskers: min–max)")
     ax.legend(loc="upper left", fontsize=8)
-    fig.tight_layout()
-    io.write_png(out / "alignment_errors.png", _render(fig), metadata=meta)
-
-
-def _render(fig) -> np.ndarray:
-    fig.canvas.draw()
-    pixels = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float32) / 255
-    plt.close(fig)
-    return pixels
+    io.write_figure(out / "alignment_errors.png", figure, metadata=meta)
 
 
 if __name__ == "__main__":

@@ -12,15 +12,10 @@ Run: ``python examples/find_landmarks.py``.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 
-from jface import data, io, mesh, raster
+from jface import data, io, mesh, plots, raster
 
 NAMES = mesh.LANDMARK_NAMES
 
@@ -47,7 +42,10 @@ def main() -> None:
     extent = 2.6 * float(np.linalg.norm(truth - truth.mean(axis=0), axis=1).max())
     size = 600
     image = raster.render(posed, np.asarray(scan.faces), size, center=center, extent=extent)
-    fig, (left, right) = plt.subplots(1, 2, figsize=(13, 6.2), width_ratios=(1, 1.25))
+    fig, ((left, right),) = plots.axes_grid(
+        1, 2, size=(13, 6.4), width_ratios=(1, 1.25),
+        title="Landmarks without clicks: the face model fitted to the Lee Perry-Smith scan",
+    )  # fmt: skip
     left.imshow(np.asarray(image), cmap="gray", vmin=0, vmax=1)
     for points, colour, label in (
         (truth, "lime", "hand-placed"),
@@ -68,12 +66,9 @@ def main() -> None:
     right.set_title("error per marker")
     right.legend(loc="upper left")
     right.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    fig.canvas.draw()
-    picture = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float32) / 255.0
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    right.set_xlabel("marker")
     meta = io.provenance(seed=0, source="lee_perry_smith_head.obj", score=float(found.score))
-    io.write_png(args.out, picture, metadata=meta)
+    io.write_figure(args.out, fig, metadata=meta)
     print(
         f"wrote {args.out}: mean error {errors['scan'].mean():.1f}% IOD on the scan, "
         f"{errors['posed, mm, holes, noise, decimated'].mean():.1f}% on the combined variant"

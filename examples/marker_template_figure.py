@@ -7,32 +7,26 @@ Run: ``python examples/marker_template_figure.py [--out docs/marker_template.png
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw
+from matplotlib.collections import PolyCollection
 
-from jface import io, mesh
-
-SIZE, PAD = 560, 40
+from jface import io, mesh, plots
 
 
-def _panel(points: np.ndarray, faces: np.ndarray, names, corners, title: str) -> Image.Image:
-    img = Image.new("RGB", (SIZE + 2 * PAD + 80, SIZE + 2 * PAD + 24), "white")
-    draw = ImageDraw.Draw(img)
-    lo, hi = points.min(0), points.max(0)
-    scale = SIZE / max(hi - lo)
-    xy = (points - lo) * scale
-    xy[:, 1] = SIZE - xy[:, 1]  # v (or y) up
-    xy += PAD
-    for f in faces:
-        draw.polygon([tuple(xy[i]) for i in f], outline=(90, 90, 90), fill=(235, 240, 250))
-    for i, (x, y) in enumerate(xy):
-        colour = (200, 40, 40) if i in corners else (30, 60, 160)
-        draw.ellipse([x - 4, y - 4, x + 4, y + 4], fill=colour)
-        draw.text((x + 5, y - 12), f"{i} {names[i]}", fill=(0, 0, 0))
-    draw.text((PAD, SIZE + 2 * PAD - 4), title, fill=(0, 0, 0))
-    return img
+def _panel(ax, points: np.ndarray, faces: np.ndarray, names, corners, title: str) -> None:
+    """The marker triangles over ``points`` (x right, y up), each marker numbered and named;
+    the fixed corners in red."""
+    ax.add_collection(
+        PolyCollection(points[np.asarray(faces)], facecolors="#ebf0fa", edgecolors="#5a5a5a")
+    )
+    colours = ["tab:red" if i in corners else "navy" for i in range(len(points))]
+    ax.scatter(points[:, 0], points[:, 1], s=18, c=colours, zorder=3)
+    for i, (x, y) in enumerate(points):
+        ax.annotate(f"{i} {names[i]}", (x, y), (4, 4), textcoords="offset points", fontsize=7)
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.set_title(title, fontsize=9)
 
 
 def main() -> None:
@@ -42,24 +36,16 @@ def main() -> None:
     template = mesh.marker_template()
     face = mesh.canonical_face()
     points3d = np.asarray(mesh.mediapipe_landmarks(face.vertices))
-    left = _panel(
-        template.uv,
-        template.faces,
-        template.names,
-        template.corners,
-        "layout in the unit square (u right, v up; red: fixed corners)",
+    figure, ((left, right),) = plots.axes_grid(
+        1, 2, size=(13, 6.6), title="The marker template of remeshing (red: fixed corners)"
     )
-    right = _panel(
-        points3d[:, :2],
-        template.faces,
-        template.names,
-        template.corners,
-        "the marker mesh on the MediaPipe canonical face (front view)",
-    )
-    both = Image.new("RGB", (left.width + right.width, left.height), "white")
-    both.paste(left, (0, 0))
-    both.paste(right, (left.width, 0))
-    io.write_png(Path(args.out), np.asarray(both), metadata={"figure": "marker template"})
+    _panel(left, np.asarray(template.uv), template.faces, template.names, template.corners,
+           "layout in the unit square")  # fmt: skip
+    left.set(xlabel="u", ylabel="v")
+    _panel(right, points3d[:, :2], template.faces, template.names, template.corners,
+           "the marker mesh on the MediaPipe canonical face (front view)")  # fmt: skip
+    right.set(xlabel="x", ylabel="y")
+    io.write_figure(args.out, figure, metadata=io.provenance(figure="marker template"))
     print(f"wrote {args.out}")
 
 

@@ -9,7 +9,7 @@ synthesis over maps whose detail changes abruptly.
    and re-synthesised from its own statistics with the paper's plain 12 iterations and with
    jface's defaults, and the per-tile errors of both (largest over the 17 bands).
 
-Run: ``python examples/real_inputs.py --out docs`` (needs matplotlib).
+Run: ``python examples/real_inputs.py --out docs``.
 """
 
 import argparse
@@ -17,14 +17,10 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib
 import numpy as np
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 from matplotlib.colors import LogNorm
 
-from jface import data, detail, io, mesh, raster, render
+from jface import data, detail, io, mesh, plots, raster, render
 
 
 def _pose(vertices: np.ndarray, marks: np.ndarray) -> np.ndarray:
@@ -72,9 +68,10 @@ def real_scan(out: Path, before: Path | None, size: int) -> None:
     detailed = mesh.displace(result.base, result.image)
     rows.append(("now", detailed, np.asarray(result.image), np.asarray(result.filled)))
     scan_view = view(scan.vertices, scan.faces)
-    fig, axes = plt.subplots(
-        len(rows), 4, figsize=(16, 4.4 * len(rows)), squeeze=False, layout="constrained"
-    )
+    fig, axes = plots.axes_grid(
+        len(rows), 4, size=(16, 4.4 * len(rows)),
+        title="Remeshing a real head scan (Golovinskiy et al. 2006, §2.2)",
+    )  # fmt: skip
     for (label, shape, image, filled), row in zip(rows, axes, strict=True):
         gap = 100 * _distances(np.asarray(shape.vertices, np.float64)[::13], scan) / diagonal
         row[0].imshow(scan_view, cmap="gray", vmin=0, vmax=1)
@@ -89,22 +86,24 @@ def real_scan(out: Path, before: Path | None, size: int) -> None:
         if filled is None:
             row[3].axis("off")
         else:
-            shown = row[3].imshow(filled, cmap="magma", vmin=0, vmax=1)
+            shown = row[3].imshow(filled, cmap=plots.COLOUR_MAPS["weight"], vmin=0, vmax=1)
             row[3].set_title(f"filled where rays missed ({np.mean(filled > 0.5):.2%})")
             fig.colorbar(shown, ax=row[3], fraction=0.046, label="share of the pixel filled")
         for ax in row:
             ax.set_xticks([])
             ax.set_yticks([])
-    fig.suptitle("Remeshing a real head scan (Golovinskiy et al. 2006, §2.2)")
-    fig.savefig(out / "mesh" / "real_scan.png", dpi=80)
-    plt.close(fig)
+            ax.title.set_fontsize(10)
+    meta = io.provenance(source="lee_perry_smith_head.obj", image_size=size)
+    io.write_figure(out / "mesh" / "real_scan.png", fig, metadata=meta)
 
 
 def heterogeneous_synthesis(out: Path, size: int) -> None:
     maps = data.heterogeneous_maps(size)
-    fig, axes = plt.subplots(
-        len(maps), 6, figsize=(20, 3.6 * len(maps)), squeeze=False, layout="constrained"
-    )
+    fig, axes = plots.axes_grid(
+        len(maps), 6, size=(20, 3.6 * len(maps)),
+        title=f"Re-synthesis from a map's own 16×16 statistics ({size}², Golovinskiy et al. "
+        "Fig. 5) on real maps whose detail changes abruptly",
+    )  # fmt: skip
     norm = LogNorm(1e-3, 10.0)
     key = jax.random.key(0)
     for (name, image), row in zip(maps.items(), axes, strict=True):
@@ -130,19 +129,15 @@ def heterogeneous_synthesis(out: Path, size: int) -> None:
             ax.imshow(render.shade(panel), cmap="gray", vmin=0, vmax=1)
             ax.set_title(label, fontsize=10)
         for ax, (label, error) in zip(row[4:], errors, strict=True):
-            shown = ax.imshow(np.maximum(error, 1e-3), cmap="viridis", norm=norm)
+            shown = ax.imshow(np.maximum(error, 1e-3), cmap=plots.COLOUR_MAPS["error"], norm=norm)
             ax.set_title(f"{label}: per-tile error\n(largest over the bands)", fontsize=10)
         fig.colorbar(shown, ax=row[4:], fraction=0.05, label="|σ − τ| / τ")
         row[0].set_ylabel(name, fontsize=13)
         for ax in row:
             ax.set_xticks([])
             ax.set_yticks([])
-    fig.suptitle(
-        f"Re-synthesis from a map's own 16×16 statistics ({size}², Golovinskiy et al. Fig. 5) "
-        "on real maps whose detail changes abruptly"
-    )
-    fig.savefig(out / "detail" / "heterogeneous_synthesis.png", dpi=70, bbox_inches="tight")
-    plt.close(fig)
+    meta = io.provenance(seed=0, maps=list(maps), size=size)
+    io.write_figure(out / "detail" / "heterogeneous_synthesis.png", fig, metadata=meta)
 
 
 def main() -> None:
@@ -153,8 +148,6 @@ def main() -> None:
     parser.add_argument("--map-size", type=int, default=512)
     args = parser.parse_args()
     out = Path(args.out)
-    for folder in ("mesh", "detail"):
-        (out / folder).mkdir(parents=True, exist_ok=True)
     real_scan(out, Path(args.before) if args.before else None, args.image_size)
     heterogeneous_synthesis(out, args.map_size)
 

@@ -13,13 +13,10 @@ import argparse
 from pathlib import Path
 
 import jax
-import matplotlib
 import numpy as np
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 from matplotlib.collections import LineCollection
 
+from jface import io, plots
 from jface.wrinkles import (
     WrinkleParams,
     build_graph,
@@ -40,7 +37,8 @@ def crop_lines(ax, graph, weights, title, crop=CROP):
     lines = LineCollection(np.stack([a[keep], b[keep]], 1), colors="k", linewidths=2.5 * w[keep],
                            alpha=1.0)  # fmt: skip
     ax.add_collection(lines)
-    ax.set(xlim=(0, crop), ylim=(crop, 0), aspect="equal", title=title, xlabel="u", ylabel="v")
+    ax.set(xlim=(0, crop), ylim=(crop, 0), aspect="equal", xlabel="u", ylabel="v")
+    ax.set_title(title, fontsize=9)
 
 
 def main() -> None:
@@ -48,7 +46,6 @@ def main() -> None:
     parser.add_argument("--out", default="docs/wrinkles")
     args = parser.parse_args()
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
 
     graph = build_graph(sample_pores(jax.random.key(1), 0.004, periodic=True))
     params = WrinkleParams(d=0.004, theta=0.0, s=0.2)
@@ -57,13 +54,18 @@ def main() -> None:
     short = np.asarray(simulate(jax.random.key(2), graph, params, n_steps=50))
     full = np.asarray(simulate(jax.random.key(2), graph, params))
 
-    fig, axes = plt.subplots(2, 3, figsize=(15, 10))
+    fig, axes = plots.axes_grid(
+        2, 3, size=(12, 8.4),
+        title="Trail simulation (Weiss et al. 2023 §3.1): converged vs 50 steps (top); "
+        "continuation reward α_cont (bottom, Fig. 6)",
+    )  # fmt: skip
     crop_lines(axes[0, 0], graph, short, f"50 steps: mean W {short[:e].mean():.3f}")
     crop_lines(axes[0, 1], graph, full, f"converged, {steps} steps: mean W {full[:e].mean():.3f}")
     bins = np.linspace(0, 1, 41)
     axes[0, 2].hist(short[:e], bins, alpha=0.6, label="50 steps")
     axes[0, 2].hist(full[:e], bins, alpha=0.6, label=f"converged ({steps} steps)")
-    axes[0, 2].set(title=f"edge weights, {e} edges, N = 50,000", xlabel="W", ylabel="edges")
+    axes[0, 2].set(xlabel="W", ylabel="edges")
+    axes[0, 2].set_title(f"edge weights, {e} edges, N = 50,000", fontsize=9)
     axes[0, 2].legend()
 
     small = build_graph(sample_pores(jax.random.key(3), 0.01, periodic=True))
@@ -75,9 +77,8 @@ def main() -> None:
         w = np.asarray(simulate(jax.random.key(4), small, base.replace(cont=cont)))
         change = np.abs(w[:es] - ref[:es]).mean()
         crop_lines(ax, small, w, f"α_cont = {cont}: mean |ΔW| vs 0 = {change:.4f}", 3 * CROP)
-    fig.suptitle("Trail simulation: converged vs 50 steps (top); continuation reward (bottom)")
-    fig.tight_layout()
-    fig.savefig(out / "convergence.png", dpi=70)
+    meta = io.provenance(seed=2, d=0.004, steps=steps, edges=e)
+    io.write_figure(out / "convergence.png", fig, metadata=meta)
     print(f"wrote {out / 'convergence.png'}")
 
 

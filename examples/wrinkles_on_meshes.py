@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jface import data, io, mesh, raster, render
+from jface import data, io, mesh, plots, raster, render
 from jface.wrinkles import WrinkleParams, radius_map_from_mesh, synthesize
 
 MESHES = {
@@ -55,8 +55,11 @@ def wrinkle(name, path, subdivisions, d, depth, yaw, size, seed, out):
                               center=center, extent=extent, light=(0.6, 0.5, 1.0))  # fmt: skip
         io.write_png(out / f"{name}_{tag}.png", image, metadata=meta)
     io.write_png(out / f"{name}_map.png", render.shade(disp), metadata=meta)
-    io.write_png(out / f"{name}_radius.png", render.colormap(np.log(np.asarray(radius)))[::-1],
-                 metadata=meta)  # fmt: skip
+    figure = plots.image(
+        np.asarray(radius)[::-1], title=f"{name}:\npore-radius scale R from the UV stretch",
+        quantity="statistics", units="R: local pore spacing / α_d",
+    )  # fmt: skip
+    io.write_figure(out / f"{name}_radius.png", figure, metadata=meta)
     io.write_exr(out / f"{name}_map.exr", disp, metadata=meta)
     counts = ", ".join(str(int(lv.pores.count)) for lv in syn.levels)
     print(f"{name}: R in [{float(radius.min()):.2f}, {float(radius.max()):.2f}], pores {counts}, "

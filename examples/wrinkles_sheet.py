@@ -17,7 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jface import io
+from jface import io, plots
 from jface.render import shade
 from jface.wrinkles import (
     WrinkleParams,
@@ -49,6 +49,11 @@ ROWS = {
 }
 
 
+def _label(changes: dict, prefix: str = "") -> str:
+    """A panel's parameters as the paper names them (α_dmin = 0.6, ...)."""
+    return ", ".join(f"{prefix}α_{k.replace('_', '-')} = {v:g}" for k, v in changes.items())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="sheet")
@@ -67,17 +72,23 @@ def main() -> None:
             params = perlin_variation(jax.random.fold_in(key, 7), params, variation)
         return shade(np.asarray(draw(key, graph, weights, params, shape)))
 
+    variations = [{}, {"scale": 0.5}, {"wrinkle_width": 0.6}]
     rows = [[panel(s, d) for s, d in cells] for cells in ROWS.values()]
-    rows.append(
-        [panel({}, {}), panel({}, {}, {"scale": 0.5}), panel({}, {}, {"wrinkle_width": 0.6})]
-    )
-    lines = [np.pad(np.concatenate([np.pad(c, ((0, 0), (0, 6)), constant_values=1.0)
-                                    for c in r], axis=1), ((0, 6), (0, 0)), constant_values=1.0)
-             for r in rows]  # fmt: skip
-    sheet = np.concatenate(lines, axis=0)
+    rows.append([panel({}, {}, v) for v in variations])
+    labels = [[_label({**s, **d}) for s, d in cells] for cells in ROWS.values()]
+    labels.append(["no variation", *(_label(v, "Perlin-varied ") for v in variations[1:])])
     names = [*ROWS, "variation (Fig. 15)"]
-    meta = io.provenance(seed=args.seed, rows=names)
-    io.write_png(Path(args.out) / "wrinkles_sheet.png", sheet, metadata=meta)
+    figure = plots.panel_grid(
+        rows,
+        title="Drawing-parameter sweeps of one pore graph (Weiss et al. 2023), shaded relief",
+        row_labels=names,
+        panel_inches=2.6,
+    )
+    panels = np.array(figure.axes).reshape(len(rows), -1)
+    for ax, label in zip(panels.ravel(), [t for row in labels for t in row], strict=True):
+        ax.set_title(label, fontsize=7)
+    meta = io.provenance(seed=args.seed, rows=names, base=BASE)
+    io.write_figure(Path(args.out) / "wrinkles_sheet.png", figure, metadata=meta)
     print("rows:", ", ".join(names))
 
 

@@ -333,6 +333,33 @@ def labelled_points(image: Any, xy: Any, names: Sequence[str], *, title: str) ->
     return figure
 
 
+def axes_grid(
+    n_rows: int = 1,
+    n_cols: int = 1,
+    *,
+    title: str,
+    size: tuple[int | float, int | float] = (6.4, 4.0),
+    **subplots: Any,
+) -> tuple[Figure, np.ndarray]:
+    """A titled figure of empty axes (``(n_rows, n_cols)`` array), for drawings the functions
+    above do not make (bars, histograms, meshes, markers over images): draw on the axes with
+    matplotlib's object interface, then write with :func:`jface.io.write_figure`.
+
+    Args:
+        n_rows, n_cols: the grid of axes.
+        title: the figure's title.
+        size: width and height in inches.
+        subplots: more arguments of :meth:`matplotlib.figure.Figure.subplots` (``width_ratios``,
+            ``sharex``, ...).
+    """
+    if not title or not str(title).strip():
+        raise ValueError("title must be a non-empty text: every figure has one")
+    figure = _figure(float(size[0]), float(size[1]))
+    axes = figure.subplots(n_rows, n_cols, squeeze=False, **subplots)
+    figure.suptitle(title, fontsize=11)
+    return figure, axes
+
+
 # --- the figures of jface's commands ---------------------------------------------------------
 
 

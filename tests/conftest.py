@@ -139,10 +139,30 @@ def unchecked():
     jaxtyping.config.update("jaxtyping_disable", False)
 
 
-@pytest.fixture
+def titled(figure) -> bool:
+    """The figure has a title (its suptitle)."""
+    return figure._suptitle is not None and figure._suptitle.get_text().strip() != ""
+
+
+def value_images_have_colour_bars(figure) -> bool:
+    """Every 2-D array drawn with a colour map (not grey relief or photographs) shares its
+    scale with a colour bar of the figure."""
+    with_bar = {id(im.norm) for ax in figure.axes for im in ax.images if im.colorbar is not None}
+    for ax in figure.axes:
+        for im in ax.images:
+            encodes_value = im.get_array().ndim == 2 and im.get_cmap().name != "gray"
+            if encodes_value and id(im.norm) not in with_bar:
+                return False
+    return True
+
+
+@pytest.fixture(autouse=True)
 def written_figures(monkeypatch) -> dict:
     """File name → the matplotlib figure written there by :func:`jface.io.write_figure`, from
-    any jface module that writes figures (each holds its own reference to the writer)."""
+    any jface module that writes figures (each holds its own reference to the writer).
+
+    In every test: each figure written (by a command, a workflow, a library call) must have a
+    title and, where a colour map encodes a value, a colour bar; checked when the test ends."""
     import importlib
     import sys
 
@@ -154,10 +174,15 @@ def written_figures(monkeypatch) -> dict:
     real, found = io.write_figure, {}
 
     def capture(path, figure, **kwargs):
+        written = real(path, figure, **kwargs)
         found[Path(path).name] = figure
-        return real(path, figure, **kwargs)
+        return written
 
     for name, module in list(sys.modules.items()):
         if name.startswith("jface") and getattr(module, "write_figure", None) is real:
             monkeypatch.setattr(module, "write_figure", capture)
-    return found
+    yield found
+    untitled = [name for name, figure in found.items() if not titled(figure)]
+    unbarred = [n for n, figure in found.items() if not value_images_have_colour_bars(figure)]
+    assert not untitled, f"figures written without a title: {untitled}"
+    assert not unbarred, f"figures with a colour-mapped value but no colour bar: {unbarred}"

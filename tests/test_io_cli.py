@@ -63,6 +63,20 @@ def test_writes_are_atomic_and_inputs_protected(tmp_path):
         io.write_png(tmp_path / "keep.exr.tmp", np.zeros((4, 4)))
 
 
+def test_a_session_records_its_planned_and_written_outputs(tmp_path):
+    assert io.session_outputs() == ([], [])  # no session: nothing recorded
+    with io.session():
+        io.check_output(tmp_path / "later.json")
+        io.write_json(tmp_path / "now.json", {})
+        assert io.session_outputs() == ([tmp_path / "later.json", tmp_path / "now.json"], [])
+        io.commit()
+        assert io.session_outputs()[1] == [tmp_path / "now.json"]
+        io.write_json(tmp_path / "dropped.json", {})
+        io.discard()  # a discarded output was planned, never written
+        planned, written = io.session_outputs()
+        assert planned[-1] == tmp_path / "dropped.json" and written == [tmp_path / "now.json"]
+
+
 def test_png_round_trip_and_metadata(tmp_path):
     grey = np.linspace(0, 1, 64, dtype=np.float32).reshape(8, 8)
     path = io.write_png(tmp_path / "g.png", grey, metadata={"seed": 1})

@@ -9,26 +9,11 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 import pytest
+from conftest import titled, value_images_have_colour_bars
 from PIL import Image
 
-from jface import detail, io, plots
+from jface import detail, faces, io, plots
 from jface.cli import _report, main
-
-
-def _titled(figure) -> bool:
-    return figure._suptitle is not None and figure._suptitle.get_text().strip() != ""
-
-
-def _value_images_have_colour_bars(figure) -> bool:
-    """Every 2-D array drawn with a colour map (not grey relief) shares its scale with a
-    colour bar of the figure."""
-    with_bar = {id(im.norm) for ax in figure.axes for im in ax.images if im.colorbar is not None}
-    for ax in figure.axes:
-        for im in ax.images:
-            encodes_value = im.get_array().ndim == 2 and im.get_cmap().name != "gray"
-            if encodes_value and id(im.norm) not in with_bar:
-                return False
-    return True
 
 
 @pytest.fixture(scope="module")
@@ -51,21 +36,22 @@ def _figures(gravel, stats):
         ),
         "image": plots.image(patch, title="Displacement", units="mm"),
         "lines": plots.lines([1.0, 2.0], {"x": [1.0, 2.0]}, title="t", xlabel="x", ylabel="y"),
+        "axes_grid": plots.axes_grid(1, 2, title="Drawn")[0],
     }
 
 
 def test_every_figure_has_a_title_and_colour_bars_where_colour_encodes_a_value(gravel, stats):
     for name, figure in _figures(gravel, stats).items():
-        assert _titled(figure), name
-        assert _value_images_have_colour_bars(figure), name
+        assert titled(figure), name
+        assert value_images_have_colour_bars(figure), name
 
 
 def test_the_checker_sees_a_missing_colour_bar():
     figure = plots.panel_grid([[np.eye(4)]], title="t", quantities="error")
-    assert _value_images_have_colour_bars(figure)
+    assert value_images_have_colour_bars(figure)
     bare = matplotlib.figure.Figure()
     bare.subplots().imshow(np.eye(4), cmap="magma")
-    assert not _value_images_have_colour_bars(bare)
+    assert not value_images_have_colour_bars(bare)
 
 
 def test_panel_grid_labels_rows_columns_and_units():
@@ -95,6 +81,13 @@ def test_convergence_draws_one_labelled_line_per_trial_on_a_log_axis():
     assert ax.get_yscale() == "log" and ax.get_xlabel() == "epoch" and ax.get_ylabel()
     np.testing.assert_array_equal(ax.get_lines()[1].get_ydata(), history[1])
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["trial 1", "trial 2", "trial 3"]
+
+
+def test_axes_grid_gives_a_titled_figure_of_empty_axes_to_draw_on():
+    figure, axes = plots.axes_grid(2, 3, title="Custom", size=(6, 4), width_ratios=(1, 2, 1))
+    assert axes.shape == (2, 3) and figure.get_suptitle() == "Custom"
+    assert list(figure.get_size_inches()) == [6, 4]
+    assert not any(ax.lines or ax.images for ax in axes.ravel())
 
 
 def test_building_figures_leaves_no_global_state(gravel, stats):
@@ -135,6 +128,8 @@ def test_bad_figure_input_names_the_argument(tmp_path):
         plots.panel_grid([["picture.png"]], title="t")
     with pytest.raises(ValueError, match="series 'a' must have 2 values"):
         plots.lines([1.0, 2.0], {"a": [1.0]}, title="t", xlabel="x", ylabel="y")
+    with pytest.raises(ValueError, match="title must be a non-empty text"):
+        plots.axes_grid(title=" ")
     with pytest.raises(TypeError, match="matplotlib Figure"):
         io.write_figure(tmp_path / "x.png", np.eye(3))
     with pytest.raises(ValueError, match=r"must end in \.png or \.pdf or \.svg"):
@@ -230,6 +225,103 @@ def test_figures_of_analyze_and_db_compare(tmp_path, gravel, written_figures):
     assert main(["db", "compare", str(db), *groups, "--out", str(tmp_path / "cmp.png")]) == 0
     assert set(written) == {"f0.stats.png", "cmp.png"}
     for name, figure in written.items():
-        assert _titled(figure) and _value_images_have_colour_bars(figure), name
+        assert titled(figure) and value_images_have_colour_bars(figure), name
     labels = {ax.get_ylabel() for ax in written["cmp.png"].axes}
     assert {"young", "old"} <= labels
+
+
+def _checked_page(run_dir: Path) -> tuple[_Links, str]:
+    """The parsed page of a run folder, after checking that every figure and file it names
+    exists; and its text."""
+    parsed = _parse(run_dir / "index.html")
+    for name in parsed.images + parsed.links:
+        assert (run_dir / name).is_file(), name
+    return parsed, "".join(parsed.text)
+
+
+def _maps(folder: Path, gravel, n: int) -> list[str]:
+    return [
+        str(io.write_exr(folder / f"m{i}.exr", gravel[64 * i : 64 * i + 64, :64].astype("f4")))
+        for i in range(n)
+    ]
+
+
+def test_commands_that_write_a_folder_write_its_page(tmp_path, gravel, capsys):
+    maps = _maps(tmp_path, gravel, 2)
+    stats = tmp_path / "stats"
+    argv = ["analyze", *maps, "--out", str(stats), "--grid", "4", "--scales", "2"]
+    assert main(argv) == 0
+    parsed, text = _checked_page(stats)
+    assert parsed.images == ["m0.stats.png", "m1.stats.png"]
+    assert parsed.links == ["m0.stats.npz", "m0.stats.png", "m1.stats.npz", "m1.stats.png"]
+    assert "analyzed 2 map(s), kept 0" in text and "--grid 4 --scales 2" in text
+    assert "Missing" not in text
+    assert main(argv) == 0  # a rerun keeps the maps done and refreshes the page
+    assert "analyzed 0 map(s), kept 2" in _checked_page(stats)[1]
+    # an image series (thumbnails) and its figure, the seed and the summary's numbers
+    train = np.random.default_rng(0).random((6, 6, 6)).astype(np.float32)
+    model = faces.save_model(tmp_path / "fa.npz", faces.fit_factor_analyser(train, 2).model)
+    samples = tmp_path / "samples"
+    argv = ["faces", "sample", str(model), "--n", "2", "--seed", "7", "--out", str(samples)]
+    assert main(argv) == 0
+    parsed, text = _checked_page(samples)
+    assert parsed.images == ["grid.png", "sample_000.png", "sample_001.png"]
+    assert "jface faces sample" in text and "seed7" in text.replace(" ", "")
+    # a command that writes one file writes no page beside it
+    assert main(["render", maps[0], "--out", str(tmp_path / "r.png")]) == 0
+    assert not (tmp_path / "index.html").exists()
+
+
+def test_a_batch_that_stopped_part_way_gets_a_page_that_says_what_is_missing(
+    tmp_path, gravel, capsys, monkeypatch
+):
+    good, other = _maps(tmp_path, gravel, 2)
+    cut = tmp_path / "cut.exr"
+    cut.write_bytes(Path(good).read_bytes()[:300])
+    out = tmp_path / "stats"
+    argv = ["analyze", good, str(cut), "--out", str(out), "--grid", "4", "--scales", "2"]
+    assert main(argv) == 2
+    assert "cut.exr is not a readable OpenEXR file" in capsys.readouterr().err
+    parsed, text = _checked_page(out)
+    assert parsed.images == ["m0.stats.png"]  # the map done before the failure stays
+    assert "cut.stats.npz" in text and "cut.stats.png" in text and "not written" in text
+    assert "failed: ValueError" in text
+    # a command refused before it wrote anything leaves no page, and no folder
+    assert main(["analyze", str(cut), "--out", str(tmp_path / "none")]) == 2
+    assert not (tmp_path / "none").exists()
+    # interrupted after the first map
+    real, done = detail.analyze, []
+
+    def analyze_once(*args, **kwargs):
+        if done:
+            raise KeyboardInterrupt
+        done.append(True)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(detail, "analyze", analyze_once)
+    out = tmp_path / "interrupted"
+    assert main(["analyze", good, other, "--out", str(out), "--grid", "4", "--scales", "2"]) == 130
+    parsed, text = _checked_page(out)
+    assert parsed.images == ["m0.stats.png"] and "interrupted" in text and "m1.stats.npz" in text
+
+
+def test_the_page_never_replaces_an_input(tmp_path, gravel, capsys):
+    # a face folder of `jface remesh` (with its page) analysed into itself: the page is an input
+    face = tmp_path / "face"
+    io.write_exr(face / "displacement.exr", gravel[:64, :64].astype("f4"))
+    (face / "index.html").write_text("the remesh run's page")
+    assert main(["analyze", str(face), "--out", str(face), "--grid", "4", "--scales", "2"]) == 0
+    assert "warning: no index.html written: refusing to overwrite the input" in (
+        capsys.readouterr().err
+    )
+    assert (face / "index.html").read_text() == "the remesh run's page"
+    assert (face / "face.stats.png").is_file()
+
+
+def test_examples_draw_through_jface_plots():
+    """No example draws with pyplot or Pillow or saves a figure itself: figures come from
+    jface.plots and are written by io.write_figure (title, colour bars, provenance)."""
+    for path in sorted((Path(__file__).parents[1] / "examples").glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        for banned in ("pyplot", "from PIL", "import PIL", ".savefig(", "render.colormap("):
+            assert banned not in text, f"{path.name} uses {banned}"

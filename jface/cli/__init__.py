@@ -14,8 +14,10 @@ SIGTERM).
 Every command speaks one vocabulary (docs/cli.md): ``--out`` names its output, ``--iters`` its
 optimiser's iterations, ``--seed`` its randomness and ``--json`` turns its summary into one JSON
 object on stdout. A command's run function returns that summary as a dict; without ``--json`` it
-is printed as the command's prose line (its ``prose`` template). Old spellings stay accepted as
-hidden options (:func:`deprecated_alias`) that print a one-line notice.
+is printed as the command's prose line (its ``prose`` template). A command whose ``--out`` is a
+folder also writes ``index.html`` there, the page of the run (:mod:`jface.cli._report`). Old
+spellings stay accepted as hidden options (:func:`deprecated_alias`) that print a one-line
+notice.
 """
 
 from __future__ import annotations
@@ -23,7 +25,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
-import io as io_text
 import json
 import signal
 import sys
@@ -102,22 +103,8 @@ def refuse_shared_names(inputs: Sequence, names: Sequence[str]) -> None:
             )
 
 
-class _Tee(io_text.TextIOBase):
-    """Text to the console that is also kept, for the run's page."""
-
-    def __init__(self, console):
-        self.console, self.lines = console, []
-
-    def write(self, text: str) -> int:
-        self.lines += [line for line in text.splitlines() if line.strip()]
-        return self.console.write(text)
-
-    def flush(self) -> None:
-        self.console.flush()
-
-
 def _demo(args: argparse.Namespace) -> dict:
-    from jface.cli._report import write_index
+    from jface.cli._report import Tee, write_index
 
     out = Path(args.out)
     steps = [m for m in _modules() if hasattr(m, "demo")]
@@ -130,7 +117,7 @@ def _demo(args: argparse.Namespace) -> dict:
         io.commit()
 
     for module, record in zip(steps, records, strict=True):
-        tee, start = _Tee(sys.stdout), time.perf_counter()
+        tee, start = Tee(sys.stdout), time.perf_counter()
         try:
             with contextlib.redirect_stdout(tee):
                 module.demo(out, seed=args.seed)
@@ -155,7 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="jface-demo", help="output folder (default: jface-demo)")
     demo.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     demo.set_defaults(
-        run=_demo, prose="demo outputs written to {out}/; the page {out}/index.html shows them"
+        run=_demo,
+        prose="demo outputs written to {out}/; the page {out}/index.html shows them",
+        own_page=True,
     )
     for module in _modules():
         module.register(sub)
@@ -167,6 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
             help="print a machine-readable summary (one JSON object on stdout) instead of prose",
         )
         _show_defaults(leaf)
+        leaf.set_defaults(page_title=leaf.prog)
     return parser
 
 
@@ -227,7 +217,10 @@ def command_inputs(args: argparse.Namespace) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``jface`` command line; returns the exit status (0, 2 for an error, 130 when
     interrupted)."""
+    from jface.cli._report import run_with_page
+
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
     if getattr(args, "deprecated", None):
         old, new = args.deprecated
@@ -240,7 +233,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             io.session(command_inputs(args)),
             contextlib.redirect_stdout(prose_to),
         ):
-            summary = args.run(args)
+            summary = run_with_page(args, argv)
     except KeyboardInterrupt:
         print(f"jface {args.command}: interrupted; unfinished outputs removed", file=sys.stderr)
         return 130
@@ -254,10 +247,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _print_summary(summary: dict, prose: str | None, *, as_json: bool) -> None:
     if as_json:
         print(json.dumps(summary, default=str))
-    elif prose is not None and summary:  # an empty summary: another process reports
-        print(prose.format(**summary))
-    elif summary:
-        print(", ".join(f"{name}: {value}" for name, value in summary.items()))
+    elif summary:  # an empty summary: another process reports
+        print(summary_text(summary, prose))
+
+
+def summary_text(summary: dict, prose: str | None) -> str:
+    """A command's summary as its prose line (its ``prose`` template, or name: value pairs)."""
+    if prose is not None:
+        return prose.format(**summary)
+    return ", ".join(f"{name}: {value}" for name, value in summary.items())
 
 
 def _one_line(err: BaseException) -> str:

@@ -17,6 +17,7 @@ from jface.io._files import (
     discard,
     own_outputs,
     session,
+    session_outputs,
     write_json,
 )
 from jface.io._images import read_image, write_png
@@ -45,6 +46,7 @@ __all__ = [
     "read_mesh",
     "save_arrays",
     "session",
+    "session_outputs",
     "write_exr",
     "write_figure",
     "write_json",

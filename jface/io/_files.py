@@ -1,4 +1,4 @@
-"""The one way jface writes a file, and the record of what a command read.
+"""The one way jface writes a file, and the record of what a command read and wrote.
 
 Every writer of :mod:`jface.io` goes through :func:`atomic_path`: the bytes go to a temporary file
 beside the target (``.NAME~jface-HOST-PID-XXXXXXXX.EXT``), which is renamed onto the target only
@@ -12,7 +12,8 @@ is refused, and so is a second output under a name already written. Inputs are t
 to the session plus every file a reader of :mod:`jface.io` opened. Outputs are staged: their
 temporary files are renamed into place together when the session ends without an error (or at
 a :func:`commit`, the checkpoint of a resumable batch), and removed when it fails, so a failed
-command leaves nothing under its output names.
+command leaves nothing under its output names. :func:`session_outputs` tells what the session
+meant to write (every output it checked) and what it has put in place, for the run's page.
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ class _Session:
     claimed: set[str] = dataclasses.field(default_factory=set)
     swept: set[str] = dataclasses.field(default_factory=set)  # folders cleared of dead temporaries
     staged: list[tuple[Path, Path]] = dataclasses.field(default_factory=list)
+    planned: dict[Path, None] = dataclasses.field(default_factory=dict)  # checked, in order
+    written: list[Path] = dataclasses.field(default_factory=list)  # committed
     tracking: bool = True
 
     def add_input(self, path: str | os.PathLike) -> None:
@@ -53,6 +56,7 @@ class _Session:
             except BaseException:  # an interrupt too: no temporary may stay behind
                 _remove(tmp for tmp, _ in staged[i:])
                 raise
+            self.written.append(path)
 
     def discard(self) -> None:
         staged, self.staged = self.staged, []
@@ -103,6 +107,15 @@ def discard() -> None:
     current = _active.get()
     if current is not None:
         current.discard()
+
+
+def session_outputs() -> tuple[list[Path], list[Path]]:
+    """The outputs of the current :func:`session`: those it checked or wrote (its planned
+    outputs, in order), and those it has put in place so far; both empty without a session."""
+    current = _active.get()
+    if current is None:
+        return [], []
+    return list(current.planned), list(current.written)
 
 
 @contextlib.contextmanager
@@ -192,6 +205,8 @@ def check_output(
         )
     current = _active.get()
     inputs = dict(current.inputs) if current is not None else {}
+    if current is not None:
+        current.planned[path] = None
     for other in protect:
         inputs.update(_identities(other))
     try:
