@@ -182,3 +182,19 @@ def test_one_group_syntax_in_db_compare_add_detail_and_age(tmp_path, gravel, cap
     np.testing.assert_array_equal(target("age=41..80")[0].std, target("old:age=41..80")[0].std)
     with pytest.raises(ValueError, match=r"--group must look like \[NAME:\]FIELD=VALUE"):
         target("age")
+
+
+def test_time_estimate_once_from_the_second_unit_and_only_for_long_runs(monkeypatch, capsys):
+    from jface import _progress
+
+    clock = iter([0.0, 20.0, 0.0, 1.0])  # the clock at each update that reads it
+    monkeypatch.setattr(_progress.time, "perf_counter", lambda: next(clock))
+    slow = _progress.Estimate(12, "map")
+    slow.skip(2)  # kept from an earlier run
+    for _ in range(5):  # the first pays compilation; the second's 20 s per map is the cost
+        slow.update(1)
+    assert capsys.readouterr().err == "about 3 min for the remaining 8 maps\n"
+    quick = _progress.Estimate(10, "row")
+    quick.update(1)
+    quick.update(1)  # 1 s per row, 8 rows left: not worth a line
+    assert capsys.readouterr().err == ""

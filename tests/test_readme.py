@@ -43,7 +43,7 @@ ROWS = {
         ["L.json", "P.png"],
     ),
     "remesh": (
-        ["remesh", SCAN, "--landmarks", LANDMARKS, "--out", "face", "--image-size", "64"],
+        ["remesh", SCAN, "--landmarks", LANDMARKS, "--out", "face", "--image-size", "256"],
         ["face/base.obj", "face/displacement.exr", "face/hierarchy.npz", "face/filled.png"],
     ),
     "displace": (
@@ -166,8 +166,8 @@ def test_every_table_row_has_an_entry_here():
 def _inputs(folder: Path) -> None:
     """Small built-in inputs, named as the rows use them."""
     gravel = data.gravel()
-    for i in range(len(AGES)):  # 64² crops, rougher with age
-        crop = gravel[32 * i : 32 * i + 64, :64] * (1 + i / 2)
+    for i in range(len(AGES)):  # 256² (16 × 16 tiles of 4 scales), in metres like the scan
+        crop = gravel[32 * i : 32 * i + 256, :256] * 1e-4 * (1 + i / 2)  # rougher with age
         io.write_exr(folder / f"m{i}.exr", crop.astype(np.float32))
     io.write_json(folder / "records.json", [{"id": f"m{i}", "age": a} for i, a in enumerate(AGES)])
     variant = data.scan_variants(*data.lee_perry_smith()[0][:2], data.lee_perry_smith()[1],
@@ -175,7 +175,7 @@ def _inputs(folder: Path) -> None:
     io.write_mesh(folder / "rough.obj", variant.vertices, variant.faces)
     io.write_landmarks(folder / "rough.json", variant.landmarks)
     assert main(["remesh", "rough.obj", "--landmarks", "rough.json", "--out", "rough",
-                 "--image-size", "64"]) == 0  # fmt: skip
+                 "--image-size", "256"]) == 0  # fmt: skip
     for i, image in enumerate(face_renders(0, 24, 24)):
         io.write_png(folder / "renders" / f"f{i:02d}.png", np.clip(image, 0, 1))
     mask = np.zeros((24, 24), np.float32)
