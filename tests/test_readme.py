@@ -94,7 +94,7 @@ ROWS = {
     ),
     "wrinkles fit": (
         ["wrinkles", "fit", "w.exr", "--out", "fit.json", "--agents", "4", "--iters", "2",
-         "--trials", "1", "--d-levels", "2"],
+         "--trials", "1", "--d-levels", "2", "--steps", "5", "--refine-steps", "0"],
         ["fit.json", "fit_convergence.png", "fit_target_fit.png"],
     ),
     "faces synth": (
