@@ -9,6 +9,8 @@ import pytest
 
 from jface import detail, io
 from jface.cli import _leaves, build_parser, main
+from jface.cli._apps import _target
+from jface.cli._detail import parse_group
 
 
 def _options(parser):
@@ -126,3 +128,73 @@ def test_remesh_folders_are_maps_named_by_folder(tmp_path, capsys):
     assert [r["id"] for r in detail.Population.load(db).records] == ["alice", "bob"]
     assert main(["analyze", str(tmp_path / "faces"), "--out", str(tmp_path / "s3")]) == 2
     assert "without displacement.exr" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("spec", "name", "criteria"),
+    [
+        ("old:age=50..60", "old", {"age": (50.0, 60.0)}),
+        ("age=50..60", "age=50..60", {"age": (50.0, 60.0)}),  # named by its criteria
+        ("f:sex=f,age=30", "f", {"sex": "f", "age": 30}),
+        ("id=a:b", "id=a:b", {"id": "a:b"}),  # a colon after '=' is part of the value
+    ],
+)
+def test_group_spellings(spec, name, criteria):
+    assert parse_group(spec) == (name, criteria)
+
+
+@pytest.mark.parametrize(
+    ("spec", "why"),
+    [
+        ("old", "'old' is not FIELD=VALUE"),
+        ("old:", "got 'old:'"),
+        (":age=1", "got ':age=1'"),
+        ("old:age=x..y", "'x..y' is not a range LOW..HIGH"),
+    ],
+)
+def test_bad_group_names_the_option_and_the_expected_form(spec, why):
+    with pytest.raises(ValueError, match=r"--group must look like \[NAME:\]FIELD=VALUE") as err:
+        parse_group(spec)
+    assert why in str(err.value) and "e.g. 'old:age=50..60'" in str(err.value)
+
+
+def test_one_group_syntax_in_db_compare_add_detail_and_age(tmp_path, gravel, capsys):
+    maps = [io.write_exr(tmp_path / f"f{i}.exr", gravel[:64, :64] * (1 + i)) for i in range(4)]
+    io.write_json(tmp_path / "meta.json", [{"id": f"f{i}", "age": 20 + 15 * i} for i in range(4)])
+    db = tmp_path / "db.npz"
+    build = ["db", "build", *map(str, maps), "--metadata", str(tmp_path / "meta.json")]
+    assert main([*build, "--out", str(db), "--grid", "4", "--scales", "2"]) == 0
+    capsys.readouterr()
+    # db compare: a named group beside one named by its criteria
+    png = tmp_path / "c.png"
+    groups = ["--group", "young:age=20..40", "--group", "age=41..80"]
+    assert main(["db", "compare", str(db), *groups, "--out", str(png), "--show-scale", "0"]) == 0
+    table = io.read_json(png.with_suffix(".json"))
+    assert table["reference"] == "young" and table["age=41..80"]["faces"] == 2
+    same = ["--group", "age=20..40", "--group", "age=20..40"]
+    assert main(["db", "compare", str(db), *same, "--out", str(tmp_path / "d.png")]) == 2
+    assert "two --group options name the group 'age=20..40'" in capsys.readouterr().err
+
+    # add-detail and age: the target group with or without a name, the same statistics
+    def target(spec):
+        return _target(argparse.Namespace(db=str(db), group=spec, stats=None, target=None), None)
+
+    np.testing.assert_array_equal(target("age=41..80")[0].std, target("old:age=41..80")[0].std)
+    with pytest.raises(ValueError, match=r"--group must look like \[NAME:\]FIELD=VALUE"):
+        target("age")
+
+
+def test_time_estimate_once_from_the_second_unit_and_only_for_long_runs(monkeypatch, capsys):
+    from jface import _progress
+
+    clock = iter([0.0, 20.0, 0.0, 1.0])  # the clock at each update that reads it
+    monkeypatch.setattr(_progress.time, "perf_counter", lambda: next(clock))
+    slow = _progress.Estimate(12, "map")
+    slow.skip(2)  # kept from an earlier run
+    for _ in range(5):  # the first pays compilation; the second's 20 s per map is the cost
+        slow.update(1)
+    assert capsys.readouterr().err == "about 3 min for the remaining 8 maps\n"
+    quick = _progress.Estimate(10, "row")
+    quick.update(1)
+    quick.update(1)  # 1 s per row, 8 rows left: not worth a line
+    assert capsys.readouterr().err == ""

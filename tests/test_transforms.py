@@ -30,6 +30,7 @@ HOST_SIDE = {
     "io.exr_rows": "files",
     "io.provenance": "a dict of metadata",
     "detail.load_stats": "files",
+    "detail.save_stats": "files",
     "detail.compare_methods": "a table of Python numbers",
     "mesh.remesh": "ray casting and sparse least squares on the host",
     "wrinkles.synthesize": "sizes each level from the pores it samples",
@@ -133,6 +134,9 @@ def cases() -> dict[str, Case]:
             (0, 0, 0),
         ),
         "render.shade": Case(render.shade, (m,), (maps,), (0,)),
+        "detail.remove_detail": Case(
+            lambda x: detail.remove_detail(x, 2, n_scales=2), (m,), (maps,), (0,)
+        ),
         "detail.age": Case(
             lambda k, young, old: detail.age(k, young, old, face_stats, n_iter=1).image,
             (key, face, face),
@@ -197,6 +201,12 @@ def cases() -> dict[str, Case]:
             (keys, train[0, :2]),
             (0, 0),
         ),
+        "faces.sample": Case(
+            lambda k: faces.sample(k, faces.fit_factor_analyser(train[0], 2, n_iter=3).model, 2),
+            (key,),
+            (keys,),
+            (0,),
+        ),
         # the case: one factor analyser per population (or bootstrap resample)
         "faces.fit_factor_analyser": Case(
             fitted_model,
@@ -212,6 +222,7 @@ TRANSFORMABLE = (
     "detail.analyze",
     "detail.synthesize",
     "render.shade",
+    "detail.remove_detail",
     "detail.age",
     "detail.Face.detailed",
     "wrinkles.WrinkleParams",
@@ -225,6 +236,7 @@ TRANSFORMABLE = (
     "faces.quilt",
     "faces.inpaint",
     "faces.fit_factor_analyser",
+    "faces.sample",
 )
 
 

@@ -244,6 +244,15 @@ def test_default_run_in_chunks_equals_one_scan(graph):
     np.testing.assert_allclose(np.asarray(chunked), np.asarray(whole), atol=1e-6)
 
 
+def test_fixed_steps_with_progress_move_the_bar_and_give_the_same_weights(capsys):
+    graph = build_graph(sample_pores(jax.random.key(7), 0.05, periodic=True))
+    params = WrinkleParams(d=0.05, theta=0.4)
+    shown = simulate(jax.random.key(8), graph, params, n_steps=CHUNK + 10, progress=True)
+    assert "2/2" in capsys.readouterr().err  # chunk by chunk, not 0/1 for the whole run
+    whole = simulate(jax.random.key(8), graph, params, n_steps=CHUNK + 10)
+    np.testing.assert_allclose(np.asarray(shown), np.asarray(whole), atol=1e-6)
+
+
 def test_weights_do_not_depend_on_capacity():
     """The same pores stored with 1× and 2× the capacity, same key: the same weights (N is the
     paper's or |E|, never the array size), eagerly and under jit."""

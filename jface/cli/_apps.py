@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from jface import detail, io, mesh, plots, render, wrinkles
 from jface.cli import deprecated_alias
-from jface.cli._detail import _parse_group
+from jface.cli._detail import GROUP_FORM, parse_group
 from jface.cli._mesh import check_face_outputs, write_face
 from jface.detail._meshes import check_faces
 
@@ -104,8 +104,9 @@ def _target_options(parser: argparse.ArgumentParser, required: bool) -> None:
     group.add_argument("--db", help="population file (jface db build): target = a group mean")
     parser.add_argument(
         "--group",
-        metavar="FIELD=VALUE[,FIELD=LOW..HIGH]",
-        help="with --db: the group whose mean statistics are the target, e.g. 'age=60..80'",
+        metavar=GROUP_FORM,
+        help="with --db: the group whose mean statistics are the target, e.g. 'age=60..80' "
+        "(a NAME: before it is allowed and unused)",
     )
 
 
@@ -169,9 +170,9 @@ def _target(
         return detail.load_stats(args.stats).stats.reduced(), Path(args.stats).name
     if args.db:
         if not args.group:
-            raise ValueError("--db needs --group FIELD=VALUE[,...] naming the target group")
+            raise ValueError(f"--db needs --group {GROUP_FORM} naming the target group")
         population = detail.Population.load(args.db)
-        _, criteria = _parse_group(f"target:{args.group}")
+        _, criteria = parse_group(args.group)
         return population.select(**criteria).mean().reduced(), f"{args.db} [{args.group}]"
     face = read_face(args.target) if args.target else default
     name = args.target or "the old face"

@@ -173,8 +173,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--group",
         action="append",
         required=True,
-        metavar="NAME:FIELD=VALUE[,FIELD=LOW..HIGH]",
-        help="a group by record fields, e.g. 'young:age=20..30,sex=m' (repeat, 2-4 groups)",
+        metavar=GROUP_FORM,
+        help="a group by record fields, e.g. 'young:age=20..30,sex=m', or 'age=20..30' named by "
+        "its criteria (repeat, 2-4 groups)",
     )
     compare.add_argument(
         "--show-scale", type=int, default=1, help="pyramid scale to draw, 0 = finest (default 1)"
@@ -352,21 +353,31 @@ def _db_build(args: argparse.Namespace) -> dict:
     return {"out": args.out, "faces": len(population)}
 
 
-def _parse_group(spec: str) -> tuple[str, dict]:
-    name, _, rules = spec.partition(":")
+#: The one spelling of ``--group`` (``db compare``, ``add-detail``, ``age``); NAME is optional.
+GROUP_FORM = "[NAME:]FIELD=VALUE[,FIELD=LOW..HIGH]"
+
+
+def parse_group(spec: str) -> tuple[str, dict]:
+    """``(name, criteria)`` of a ``--group`` value ``[NAME:]FIELD=VALUE[,FIELD=LOW..HIGH]``.
+
+    A group without a name is named by its criteria (``age=20..30``); a colon after the first
+    ``=`` belongs to a value, not to a name."""
+    head, colon, rest = spec.partition(":")
+    name, rules = (head, rest) if colon and "=" not in head else (spec, spec)
+    expected = f"--group must look like {GROUP_FORM}, e.g. 'old:age=50..60' or 'age=50..60'"
     if not name or not rules:
-        raise ValueError(f"--group must look like NAME:FIELD=VALUE[,...], got {spec!r}")
+        raise ValueError(f"{expected}; got {spec!r}")
     criteria = {}
     for rule in rules.split(","):
         field, _, value = rule.partition("=")
         if not field or not value:
-            raise ValueError(f"--group {spec!r}: {rule!r} is not FIELD=VALUE or FIELD=LOW..HIGH")
+            raise ValueError(f"{expected}; got {spec!r} ({rule!r} is not FIELD=VALUE)")
         if ".." in value:
             try:
                 low, high = (float(v) for v in value.split(".."))
             except ValueError:
                 raise ValueError(
-                    f"--group {spec!r}: {value!r} is not a range LOW..HIGH of two numbers"
+                    f"{expected}; got {spec!r} ({value!r} is not a range LOW..HIGH of two numbers)"
                 ) from None
             criteria[field] = (low, high)
         else:
@@ -383,7 +394,9 @@ def _db_compare(args: argparse.Namespace) -> dict:
     population = detail.Population.load(args.db)
     groups = {}
     for spec in args.group:
-        name, criteria = _parse_group(spec)
+        name, criteria = parse_group(spec)
+        if name in groups:
+            raise ValueError(f"two --group options name the group {name!r}; name them apart")
         groups[name] = population.select(**criteria)
     if len(groups) > len(render.GROUP_COLOURS):
         raise ValueError(f"at most {len(render.GROUP_COLOURS)} groups, got {len(groups)}")

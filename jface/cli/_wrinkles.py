@@ -15,6 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from jface import plots
+from jface._progress import Estimate
 from jface.cli import _fit, deprecated_alias
 from jface.io import (
     check_output,
@@ -387,6 +388,7 @@ def _render_bands(key, levels, shape, base, out, meta, run):
         exr_rows(out, shape, metadata=meta) as write,
         tqdm(total=shape[0], desc="draw + write", unit="row", leave=False) as bar,
     ):
+        estimate = Estimate(shape[0], "row")
         for first, rows in bands.rows:
             if base is not None:
                 rows = blend_with_scan(base, rows, first_row=first)
@@ -394,6 +396,7 @@ def _render_bands(key, levels, shape, base, out, meta, run):
             write(rows)
             preview.append(rows[(-first) % step :: step, ::step])
             bar.update(rows.shape[0])
+            estimate.update(rows.shape[0])
     return [int(sim.pores.count) for sim in bands.levels], np.concatenate(preview)
 
 

@@ -26,6 +26,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 from jface import _checks, io, pyramid
+from jface._progress import Estimate
 from jface.detail._population import Population, check_records
 from jface.detail._stats import (
     DetailStats,
@@ -203,8 +204,10 @@ def _build_database(
             run.same_on_all("the command's arguments or its maps' contents", fingerprint)
         mine = range(process, len(chunks), n_processes)
         devices = list(devices or jax.local_devices())
+        estimate = Estimate(sum(len(chunks[i]) for i in mine), "map", enabled=progress)
         for i in tqdm(mine, desc="analyze", unit="chunk", disable=not progress):
             if _part(paths[i], keys[i]) is not None:
+                estimate.skip(len(chunks[i]))  # kept from an earlier run
                 continue
             images = np.stack([io.read_map(name) for name in chunks[i]])
             if io.content_key(chunks[i], settings) != keys[i]:
@@ -217,6 +220,7 @@ def _build_database(
             sources_meta = {"sources": [str(n) for n in chunks[i]], "key": keys[i]}
             io.save_arrays(paths[i], arrays, {**meta, **sources_meta}, kind="DetailStatsChunk")
             io.commit()  # a finished chunk survives a crash of a later one
+            estimate.update(len(chunks[i]))
         if run is not None:
             run.gather("finished", "")  # process 0 waits for every share
             if process != 0:

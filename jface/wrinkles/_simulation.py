@@ -292,8 +292,8 @@ def simulate(
             )
         n_steps = converged_steps(graph, params, n_samples)
         chunk = CHUNK
-    else:
-        chunk = max(n_steps, 1)
+    else:  # one call, unless a progress bar is to move (chunks continue the same run)
+        chunk = CHUNK if progress else max(n_steps, 1)
     # the sample array's static size: N itself when known, else the most it can be
     if n_samples is not None:
         size, active = n_samples, jnp.int32(n_samples)
