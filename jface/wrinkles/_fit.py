@@ -75,6 +75,7 @@ class WrinkleFit(eqx.Module):
         sim_key: the simulation key of the best trial (reproduces ``fitted``).
         fitted: the synthesised map of ``levels``, ``(H, W)``.
         interrupted: the fit was stopped (Ctrl-C) and reports the best found so far, unrefined.
+        epochs_run: epochs each trial ran (static).
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
@@ -85,6 +86,7 @@ class WrinkleFit(eqx.Module):
     sim_key: Array
     fitted: Float[Array, "H W"]
     interrupted: bool = eqx.field(static=True, default=False)
+    epochs_run: tuple[int, ...] = eqx.field(static=True, default=())
 
 
 class _Layout(eqx.Module):
@@ -439,17 +441,20 @@ def fit_wrinkles(
     except KeyboardInterrupt:  # keep what the swarms found so far
         interrupted = True
     swarm = _result(runs, low, high)
+    epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
     best = int(swarm.best_trial)
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
     if interrupted:
         sims, levels = _simulate(sim_key, levels, layout)
         image = _draw(sim_key, sims, levels, layout)
-        return WrinkleFit(levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True)
+        return WrinkleFit(
+            levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
+        )
     refined, loss, image = _refine(
         sim_key, levels, swarm.loss, layout, target_stats, names, refine_steps
     )
-    return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image)
+    return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image, False, epochs)
 
 
 class _Trial:
