@@ -32,7 +32,6 @@ from jface import detail
 from jface.optim import texture_stats
 from jface.wrinkles import WrinkleParams, fit_wrinkles
 from jface.wrinkles._fit import (
-    D_LEVELS,
     D_RANGE,
     PAPER_NAMES,
     _bounds,
@@ -120,7 +119,7 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=100)
     parser.add_argument("--trials", type=int, default=3)
     parser.add_argument("--steps", type=int, default=50)
-    parser.add_argument("--d-levels", type=int, default=D_LEVELS)
+    parser.add_argument("--d-levels", type=int, help="default: the mode's (16 fast, 32 paper)")
     parser.add_argument("--refine-steps", type=int, default=30)
     parser.add_argument("--stages", action="store_true", help="the cost split of one evaluation")
     args = parser.parse_args()
@@ -128,8 +127,9 @@ def main() -> None:
         target = make_target(name, args.size, args.steps)
         if args.stages:
             start = time.perf_counter()
-            layout = _layout(jax.random.key(0), target.shape, D_RANGE, args.steps, args.d_levels)
-            report(f"layout: pores and graphs of {args.d_levels} α_d values",
+            levels = args.d_levels or 32
+            layout = _layout(jax.random.key(0), target.shape, D_RANGE, args.steps, levels)
+            report(f"layout: pores and graphs of {levels} α_d values",
                    time.perf_counter() - start)  # fmt: skip
             stages(target, layout, 8)
             evaluation_cost(target, layout, args.agents)

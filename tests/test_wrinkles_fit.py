@@ -14,10 +14,13 @@ from jface.cli import main
 from jface.io import write_exr
 from jface.optim import texture_stats
 from jface.wrinkles import WrinkleParams, fit_wrinkles
-from jface.wrinkles._fit import _draw, _layout, _simulate, _SwarmLoss
+from jface.wrinkles._fit import _draw, _layout, _levels_from, _refine, _simulate, _SwarmLoss
 
 D_RANGE = (0.04, 0.05)
-NAMES = ("1.deposit", "1.theta", "1.wrinkle_width")
+# α_wrinkle-width is not fitted: its loss profile (the others at truth, two simulation keys) moves
+# by 4 % over its whole Table 1 range [0.1, 0.6] (minimum at 0.25-0.35), less than the losses of
+# a swarm's trials differ, so no fit here could recover it
+NAMES = ("1.deposit", "1.theta")
 TRUE = (
     WrinkleParams(d=0.045, theta=1.0, s=0.2, deposit=0.6, wrinkle_width=0.3),
     WrinkleParams(d=0.0225, theta=1.0, s=0.2, deposit=0.6, snoise=0.001),
@@ -47,8 +50,8 @@ def fit(target):
 def test_recovers_deposit_and_orientation(fit, target):
     layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 30, 4)
     loss = eqx.filter_jit(_SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, NAMES))
-    # the truth and α_deposit 0.3 / 0.9 with the others at truth (one compiled call)
-    points = jnp.array([[0.6, 1.0, 0.3], [0.3, 1.0, 0.3], [0.9, 1.0, 0.3]], jnp.float32)
+    # the truth and α_deposit 0.3 / 0.9 with α_θ at truth (one compiled call)
+    points = jnp.array([[0.6, 1.0], [0.3, 1.0], [0.9, 1.0]], jnp.float32)
     true_loss, low, high = (float(v) for v in loss(points))
     # α_deposit is identifiable with this loss: its profile (the others at truth, this target,
     # 30 steps, α_d on the 4-value grid; measured on a grid of 0.05) has its minimum at
@@ -63,7 +66,15 @@ def test_recovers_deposit_and_orientation(fit, target):
     assert abs((theta - 1.0 + np.pi / 2) % np.pi - np.pi / 2) < 0.4
 
 
-def test_refinement_never_worsens_and_history_is_monotone(fit):
+def test_refinement_never_worsens_and_history_is_monotone(fit, target):
+    # the fit's answer with the widest α_wrinkle-width, refined by gradient on that field
+    layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 30, 4)
+    names = (*NAMES, "1.wrinkle_width")
+    x = jnp.concatenate([fit.swarm.params, jnp.array([0.6], jnp.float32)])
+    start = _SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, names)(x[None])[0]
+    levels = _levels_from(x, names, TRUE)
+    _, loss, _ = _refine(fit.sim_key, levels, start, layout, texture_stats(target), names, 4)
+    assert float(loss) <= float(start)
     assert float(fit.loss) <= float(fit.swarm_loss)
     assert np.all(np.diff(np.asarray(fit.swarm.history), axis=1) <= 0)
     assert fit.fitted.shape == (64, 64) and np.all(np.isfinite(fit.fitted))

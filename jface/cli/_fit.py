@@ -52,8 +52,8 @@ def register(subparsers) -> None:
     parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
     parser.add_argument("--refine-steps", type=int, default=30, help="BFGS steps (0: none)")
     parser.add_argument(
-        "--d-levels", type=int, default=32,
-        help="α_d values whose pores and graphs are precomputed (default: 32)",
+        "--d-levels", type=int,
+        help="α_d values whose pores and graphs are precomputed (default: 16, 32 with --paper)",
     )  # fmt: skip
     parser.add_argument(
         "--d-range", type=float, nargs=2, default=(0.02, 0.05), metavar=("LOW", "HIGH"),
@@ -73,7 +73,7 @@ def _fit(args: argparse.Namespace) -> dict:
         check_output(f"{stem}{suffix}", (".png",))
     for name, option in (("agents", "agents"), ("epochs", "iters"), ("trials", "trials"),
                          ("steps", "steps"), ("d_levels", "d-levels")):  # fmt: skip
-        if getattr(args, name) < 1:
+        if getattr(args, name) is not None and getattr(args, name) < 1:
             raise ValueError(f"--{option} must be at least 1, got {getattr(args, name)}")
     patch = read_map(args.patch, args.channel)
     mode = "paper" if args.paper else "fast"
@@ -102,7 +102,7 @@ def _fit(args: argparse.Namespace) -> dict:
             n_trials=args.trials,
             n_steps=args.steps,
             refine_steps=args.refine_steps,
-            d_levels=max(2, args.d_levels),
+            d_levels=None if args.d_levels is None else max(2, args.d_levels),
             mode=mode,
             progress=progress,
         )
