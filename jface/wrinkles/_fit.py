@@ -496,7 +496,8 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress) -> None:
             runs[t].advance(rung, search, t, progress)
         alive = sorted(alive, key=lambda t: runs[t].history[-1])[: -(-len(alive) // 2)]
     (t,) = alive
-    runs[t].advance(n_epochs + 1 - len(runs[t].history), search, t, progress, stall=True)
+    done = max(0, len(runs[t].history) - 1)
+    runs[t].advance(n_epochs - done, search, t, progress, stall=True)
 
 
 def _result(runs: list[_Trial], low, high) -> PSOResult:
