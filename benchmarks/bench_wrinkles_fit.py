@@ -3,11 +3,11 @@
 RTX A6000). No reference tool exists.
 
 Targets: ``known-<seed>``, two-level maps drawn from known parameters (other pores, another
-simulation key than the fit's); ``brick`` and ``gravel``, 256² crops of the skimage textures;
-``synthesized``, a map from ``detail.synthesize`` with the statistics of gravel. Each line gives
-a mode's wall time, its swarm and refined loss, the epochs each trial ran and, for the synthetic
-targets, the recovered α_deposit and α_θ of level 1 against the truth; the paper mode's line
-adds the fast/paper ratios of time and loss when both ran on the target.
+simulation key than the fit's); ``brick`` and ``gravel``, crops of the skimage textures;
+``synthesized``, a map from ``detail.synthesize`` with the gravel crop's statistics. Each line
+gives a mode's wall time, its swarm and refined loss, the epochs each trial ran and, for the
+synthetic targets, the recovered α_deposit and α_θ of level 1 against the truth; the paper
+mode's line adds the fast/paper ratios of time and loss when both ran on the target.
 
 ``--stages`` first prints the cost of one swarm evaluation split into simulation, drawing and
 texture loss, and the layout time (pores and graphs of the α_d grid).
@@ -103,8 +103,9 @@ def make_target(name: str, size: int, steps: int) -> np.ndarray:
         return np.asarray(_draw(key, sims, levels, layout))
     gravel = data.gravel().astype(np.float32) / 255.0
     if name == "synthesized":
-        smooth = np.asarray(detail.remove_detail(gravel[:size, :size], n_bands=3))
-        return np.asarray(detail.synthesize(jax.random.key(3), smooth, detail.analyze(gravel)))
+        crop = gravel[:size, :size]
+        smooth = np.asarray(detail.remove_detail(crop, n_bands=3))
+        return np.asarray(detail.synthesize(jax.random.key(3), smooth, detail.analyze(crop)))
     texture = {"brick": data.brick().astype(np.float32) / 255.0, "gravel": gravel}[name]
     return texture[:size, :size]
 
