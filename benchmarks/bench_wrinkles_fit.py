@@ -105,7 +105,8 @@ def make_target(name: str, size: int, steps: int) -> np.ndarray:
     if name == "synthesized":
         crop = gravel[:size, :size]
         smooth = np.asarray(detail.remove_detail(crop, n_bands=3))
-        return np.asarray(detail.synthesize(jax.random.key(3), smooth, detail.analyze(crop)))
+        stats = detail.analyze(crop, grid=4)  # whole tiles at every scale of a small crop
+        return np.asarray(detail.synthesize(jax.random.key(3), smooth, stats))
     texture = {"brick": data.brick().astype(np.float32) / 255.0, "gravel": gravel}[name]
     return texture[:size, :size]
 
