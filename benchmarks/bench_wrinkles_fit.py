@@ -1,16 +1,19 @@
-"""Full wrinkle fit on a 256² patch with the paper's settings (goal ≤ 10 min on the CPU; the
-paper: ~35 min per run on an RTX A6000). No reference tool exists; the lines report the cost of
-one swarm evaluation split into its stages (simulation, drawing, texture loss; pores and graphs
-are precomputed once per fit, reported as "layout"), the cost of one evaluation as the fit runs
-it, the wall time of the whole fit, the swarm's best loss, the refined loss and the share of
-agents that could not be drawn (NaN loss).
+"""Wrinkle fit on 256² patches, fast mode against the paper's procedure (goal: fast mode within
+10 min on the CPU with a final loss ≤ 1.05× the paper mode's; the paper: ~35 min per run on an
+RTX A6000). No reference tool exists.
 
-The target is a two-level map drawn from known parameters (other pores, another seed); pass
-``--patch`` to fit a measured EXR patch instead. ``--agents/--epochs/--trials`` shrink the run;
-the line then also extrapolates to the paper's 50 × 101 × 3 evaluations: the fit's fixed cost
-(its time less its evaluations at the measured cost each) plus that many evaluations.
+Targets: ``known-<seed>``, two-level maps drawn from known parameters (other pores, another
+simulation key than the fit's); ``brick`` and ``gravel``, crops of the skimage textures;
+``synthesized``, a map from ``detail.synthesize`` with the gravel crop's statistics. Each line
+gives a mode's wall time, its swarm and refined loss, the epochs each trial ran and, for the
+synthetic targets, the recovered α_deposit and α_θ of level 1 against the truth; the paper
+mode's line adds the fast/paper ratios of time and loss when both ran on the target.
 
-Run: ``python benchmarks/bench_wrinkles_fit.py [--size 256] [--agents 50] [--epochs 100]``.
+``--stages`` first prints the cost of one swarm evaluation split into simulation, drawing and
+texture loss, and the layout time (pores and graphs of the α_d grid).
+
+Run: ``python benchmarks/bench_wrinkles_fit.py [--targets known-1 brick] [--modes fast paper]
+[--agents 50] [--epochs 100] [--trials 3]``.
 """
 
 from __future__ import annotations
@@ -23,12 +26,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from _timing import best_of, report
+from skimage import data
 
-from jface.io import read_map
+from jface import detail
 from jface.optim import texture_stats
 from jface.wrinkles import WrinkleParams, fit_wrinkles
 from jface.wrinkles._fit import (
-    D_LEVELS,
     D_RANGE,
     PAPER_NAMES,
     _bounds,
@@ -41,7 +44,7 @@ from jface.wrinkles._fit import (
     _SwarmLoss,
 )
 
-PAPER_EVALUATIONS = 50 * 101 * 3
+TARGETS = ["known-1", "known-2", "known-3", "brick", "gravel", "synthesized"]
 
 
 def stages(target, layout, agents: int) -> None:
@@ -86,59 +89,87 @@ def evaluation_cost(target, layout, agents: int) -> float:
     return seconds
 
 
+TRUTH = (
+    WrinkleParams(d=0.03, theta=0.8, s=0.3, deposit=0.5),
+    WrinkleParams(d=0.015, theta=0.8, s=0.3, deposit=0.5, snoise=0.001),
+)
+
+
+def make_target(name: str, size: int, steps: int) -> np.ndarray:
+    if name.startswith("known-"):
+        key = jax.random.key(1000 + int(name.split("-")[1]))
+        layout = _layout(key, (size, size), D_RANGE, steps, 4)
+        sims, levels = _simulate(key, TRUTH, layout)
+        return np.asarray(_draw(key, sims, levels, layout))
+    gravel = data.gravel().astype(np.float32) / 255.0
+    if name == "synthesized":
+        crop = gravel[:size, :size]
+        smooth = np.asarray(detail.remove_detail(crop, n_bands=3))
+        stats = detail.analyze(crop, grid=4)  # whole tiles at every scale of a small crop
+        return np.asarray(detail.synthesize(jax.random.key(3), smooth, stats))
+    texture = {"brick": data.brick().astype(np.float32) / 255.0, "gravel": gravel}[name]
+    return texture[:size, :size]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--patch", help="measured patch (EXR/npy/PNG) instead of a synthetic one")
+    parser.add_argument("--targets", nargs="+", default=TARGETS, choices=TARGETS)
+    parser.add_argument("--modes", nargs="+", default=["fast", "paper"], choices=["fast", "paper"])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="fit seeds")
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--agents", type=int, default=50)
     parser.add_argument("--epochs", type=int, default=100)
     parser.add_argument("--trials", type=int, default=3)
     parser.add_argument("--steps", type=int, default=50)
-    parser.add_argument("--d-levels", type=int, default=D_LEVELS)
+    parser.add_argument("--d-levels", type=int, help="default: the mode's (16 fast, 32 paper)")
     parser.add_argument("--refine-steps", type=int, default=30)
-    parser.add_argument("--stage-agents", type=int, default=8, help="agents of the stage split")
+    parser.add_argument("--stages", action="store_true", help="the cost split of one evaluation")
     args = parser.parse_args()
-    shape = (args.size, args.size)
-    if args.patch:
-        target = read_map(args.patch)
-    else:
-        truth = (
-            WrinkleParams(d=0.03, theta=0.8, s=0.3, deposit=0.5),
-            WrinkleParams(d=0.015, theta=0.8, s=0.3, deposit=0.5, snoise=0.001),
-        )
-        key = jax.random.key(99)
-        layout = _layout(key, shape, D_RANGE, args.steps, 4)
-        sims, levels = _simulate(key, truth, layout)
-        target = np.asarray(_draw(key, sims, levels, layout))
-    start = time.perf_counter()
-    layout = _layout(jax.random.key(0), target.shape, D_RANGE, args.steps, args.d_levels)
-    report(f"layout: pores and graphs of {args.d_levels} α_d values", time.perf_counter() - start)
-    if args.stage_agents:
-        stages(target, layout, args.stage_agents)
-    per_evaluation = evaluation_cost(target, layout, args.agents)
-    start = time.perf_counter()
-    fit = fit_wrinkles(
-        jax.random.key(0), target, n_agents=args.agents, n_epochs=args.epochs,
-        n_trials=args.trials, n_steps=args.steps, d_levels=args.d_levels,
-        refine_steps=args.refine_steps,
-    )  # fmt: skip
-    jax.block_until_ready(fit.loss)
-    elapsed = time.perf_counter() - start
-    evaluations = args.agents * (args.epochs + 1) * args.trials
-    fixed = max(0.0, elapsed - per_evaluation * evaluations)
-    report(
-        f"wrinkle fit {target.shape[0]}x{target.shape[1]}, {args.agents} agents x {args.epochs} "
-        f"epochs x {args.trials} trials, {args.steps} steps",
-        elapsed,
-        goal_s=600,
-        evaluations=evaluations,
-        # what does not grow with the evaluations: layout, compilation, refinement
-        fixed_s=round(fixed, 1),
-        paper_run_extrapolated_s=round(fixed + per_evaluation * PAPER_EVALUATIONS),
-        swarm_loss=float(fit.swarm_loss),
-        refined_loss=float(fit.loss),
-        nonfinite_evaluations=int(np.sum(np.asarray(fit.swarm.n_nonfinite))),
-    )
+    for name in args.targets:
+        target = make_target(name, args.size, args.steps)
+        if args.stages:
+            start = time.perf_counter()
+            levels = args.d_levels or 32
+            layout = _layout(jax.random.key(0), target.shape, D_RANGE, args.steps, levels)
+            report(f"layout: pores and graphs of {levels} α_d values",
+                   time.perf_counter() - start)  # fmt: skip
+            stages(target, layout, 8)
+            evaluation_cost(target, layout, args.agents)
+        for seed in args.seeds:
+            done = {}
+            for mode in args.modes:
+                start = time.perf_counter()
+                fit = fit_wrinkles(
+                    jax.random.key(seed), target, n_agents=args.agents, n_epochs=args.epochs,
+                    n_trials=args.trials, n_steps=args.steps, d_levels=args.d_levels,
+                    refine_steps=args.refine_steps, mode=mode,
+                )  # fmt: skip
+                jax.block_until_ready(fit.loss)
+                elapsed = time.perf_counter() - start
+                done[mode] = (elapsed, float(fit.loss))
+                extra = {}
+                if name.startswith("known-"):
+                    extra = {"deposit": round(float(fit.levels[0].deposit), 3),
+                             "theta": round(float(fit.levels[0].theta), 3),
+                             "truth": {"deposit": 0.5, "theta": 0.8}}  # fmt: skip
+                if mode == "paper" and "fast" in done:
+                    fast_s, fast_loss = done["fast"]
+                    extra |= {
+                        "time_fast_over_paper": round(fast_s / elapsed, 3),
+                        "loss_fast_over_paper": round(fast_loss / float(fit.loss), 3),
+                    }
+                report(
+                    f"wrinkle fit, {mode} mode, target {name} {target.shape[0]}², seed {seed}, "
+                    f"{args.agents} agents, {args.epochs} epochs, {args.trials} trials",
+                    elapsed,
+                    goal_s=600,
+                    swarm_loss=float(fit.swarm_loss),
+                    loss=float(fit.loss),
+                    epochs_run=list(fit.epochs_run),
+                    evaluations=args.agents * sum(e + 1 for e in fit.epochs_run),
+                    nonfinite_evaluations=int(np.sum(np.asarray(fit.swarm.n_nonfinite))),
+                    **extra,
+                )
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from jface import plots
 from jface.cli import deprecated_alias
-from jface.io import check_output, provenance, read_map, write_figure, write_json
+from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import ParamUnits, fit_wrinkles, params_to_json, parse_patch_size
 
@@ -45,12 +45,22 @@ def register(subparsers) -> None:
         help="swarm epochs (default: 100)",
     )
     deprecated_alias(parser, "--epochs", "--iters")
-    parser.add_argument("--trials", type=int, default=3, help="independent trials (default: 3)")
+    parser.add_argument(
+        "--trials", type=int, default=3,
+        help="independent trials; without --paper they race, the better half going on "
+        "(default: 3)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--paper", action="store_true",
+        help="the paper's procedure: every trial runs all --iters epochs, no early stop "
+        "(default: off: trials by successive halving, stop when the best loss improves by less "
+        "than 0.1 %% over 10 epochs)",
+    )  # fmt: skip
     parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
     parser.add_argument("--refine-steps", type=int, default=30, help="BFGS steps (0: none)")
     parser.add_argument(
-        "--d-levels", type=int, default=32,
-        help="α_d values whose pores and graphs are precomputed (default: 32)",
+        "--d-levels", type=int,
+        help="α_d values whose pores and graphs are precomputed (default: 16, 32 with --paper)",
     )  # fmt: skip
     parser.add_argument(
         "--d-range", type=float, nargs=2, default=(0.02, 0.05), metavar=("LOW", "HIGH"),
@@ -90,25 +100,26 @@ def _fit(args: argparse.Namespace) -> dict:
         check_output(f"{stem}{suffix}", (".png",))
     for name, option in (("agents", "agents"), ("epochs", "iters"), ("trials", "trials"),
                          ("steps", "steps"), ("d_levels", "d-levels")):  # fmt: skip
-        if getattr(args, name) < 1:
+        if getattr(args, name) is not None and getattr(args, name) < 1:
             raise ValueError(f"--{option} must be at least 1, got {getattr(args, name)}")
     patch = read_map(args.patch, args.channel)
     units = _units(args.patch_size, patch.shape)
-    total = args.trials * args.epochs
+    mode = "paper" if args.paper else "fast"
+    total = args.trials * args.epochs if args.paper else _halving_epochs(args.trials, args.epochs)
     # measured on 2 CPU cores: 0.12 s per agent and epoch at 256², plus 90 s of fixed cost
     minutes = (total * args.agents * 0.12 * patch.size / 256**2 + 90) / 60
     print(
-        f"wrinkles fit: {args.agents} agents × {args.epochs} epochs × {args.trials} trials on a "
-        f"{patch.shape[1]}×{patch.shape[0]} patch: about {minutes:.0f} min on 2 CPU cores "
-        "(fewer --agents, --iters or --trials for a quick look)",
+        f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "
+        f"trials on a {patch.shape[1]}×{patch.shape[0]} patch: at most about {minutes:.0f} min "
+        "on 2 CPU cores (fewer --agents, --iters or --trials for a quick look; Ctrl-C keeps the "
+        "best parameters so far)",
         file=sys.stderr,
     )
     with tqdm(total=total, desc="particle swarm", unit="epoch") as bar:
 
         def progress(trial, epoch, best):
-            bar.n = trial * args.epochs + epoch
-            bar.set_postfix(trial=trial + 1, best=f"{best:.4g}", refresh=False)
-            bar.refresh()
+            bar.update(1)
+            bar.set_postfix(trial=trial + 1, epoch=epoch, best=f"{best:.4g}", refresh=False)
 
         fit = fit_wrinkles(
             jax.random.key(args.seed),
@@ -119,12 +130,13 @@ def _fit(args: argparse.Namespace) -> dict:
             n_trials=args.trials,
             n_steps=args.steps,
             refine_steps=args.refine_steps,
-            d_levels=max(2, args.d_levels),
+            d_levels=None if args.d_levels is None else max(2, args.d_levels),
+            mode=mode,
             progress=progress,
         )
     meta = provenance(
         seed=args.seed, patch=str(args.patch), agents=args.agents, epochs=args.epochs,
-        trials=args.trials, steps=args.steps, refine_steps=args.refine_steps,
+        trials=args.trials, mode=mode, steps=args.steps, refine_steps=args.refine_steps,
         d_range=list(args.d_range), d_levels=args.d_levels,
     )  # fmt: skip
     document = json.loads(params_to_json(list(fit.levels), units))
@@ -135,6 +147,9 @@ def _fit(args: argparse.Namespace) -> dict:
             "trial_losses": np.asarray(fit.swarm.trial_losses).tolist(),
             "nonfinite_losses": np.asarray(fit.swarm.n_nonfinite).tolist(),
             "names": list(fit.names),
+            "mode": mode,
+            "epochs_run": list(fit.epochs_run),
+            "interrupted": fit.interrupted,
         },
         "provenance": meta,
     }
@@ -156,6 +171,11 @@ def _fit(args: argparse.Namespace) -> dict:
     )
     write_figure(f"{stem}_target_fit.png", pair, metadata=meta)
     bad = int(np.sum(fit.swarm.n_nonfinite))
+    if fit.interrupted:
+        commit()  # keep the best parameters found so far, then exit as interrupted (130)
+        print(f"wrinkles fit: interrupted; wrote the best parameters so far to {out}",
+              file=sys.stderr)  # fmt: skip
+        raise KeyboardInterrupt
     return {
         "out": str(out),
         "convergence": f"{stem}_convergence.png",
@@ -164,3 +184,12 @@ def _fit(args: argparse.Namespace) -> dict:
         "loss": float(fit.loss),
         "nonfinite": bad,
     }
+
+
+def _halving_epochs(trials: int, epochs: int) -> int:
+    """Epochs of a fast fit at most: rungs of ``epochs // 8`` for a halving field of trials,
+    then the last trial on to ``epochs`` in all."""
+    rung, total, done = max(1, epochs // 8), 0, 0
+    while trials > 1:
+        total, done, trials = total + trials * rung, done + rung, -(-trials // 2)
+    return total + max(0, epochs - done)

@@ -231,40 +231,16 @@ def _trial(key, index, loss_fn, low, high, cyclic, settings: _Settings, progress
     m, n = settings.n_agents, low.shape[0]
 
     def evaluate(x: Float[Array, "M P"]) -> tuple[Float[Array, " M"], Int[Array, ""]]:
-        units = low + x * (high - low)
-        s = loss_fn(units) if settings.batched else jax.vmap(_scalar(loss_fn))(units)
-        if s.shape != (m,) or s.dtype.kind != "f":  # checked once, while tracing
-            raise TypeError(
-                f"loss_fn must return one loss per agent for a {(m, n)} input, got "
-                f"{_checks.describe(s)}"
-            )
-        s = s.astype(jnp.float32)
-        finite = jnp.isfinite(s)
-        return jnp.where(finite, s, jnp.inf), jnp.sum(~finite)
+        return _evaluate(loss_fn, low, high, x, settings)
 
-    k_x, k_v, k_run = jax.random.split(key, 3)
-    x = jax.random.uniform(k_x, (m, n), jnp.float32)
-    v = 0.5 * (jax.random.uniform(k_v, (m, n), jnp.float32) - x)  # half-diff
-    seed = jax.random.bits(k_run, (), jnp.uint32)
+    x, v, seed = _start(key, m, n)
     s, bad = evaluate(x)
-    a, b, c = settings.inertia
 
     def epoch(state, t):
         x, v, p, ps, bad = state
-        # cheaper than threefry; the barrier keeps XLA from recomputing the hash in every user
-        r1, r2, r3 = jax.lax.optimization_barrier(counter_uniform(seed, t, (3, m, n)))
-        g = _neighbourhood_best(p, ps, settings.topology)
-        w = a + b * jnp.power(jnp.float32(c), t.astype(jnp.float32))
-        v = (
-            w * v
-            + settings.c1 * r1 * _delta(p, x, cyclic)
-            + settings.c2 * r2 * _delta(g, x, cyclic)
-        )
-        x, v = _bound(r3, x + settings.dt * v, v, cyclic, settings.boundary)
+        x, v = _move(x, v, p, ps, t, seed, cyclic, settings)
         s, new_bad = evaluate(x)
-        better = s < ps
-        p = jnp.where(better[:, None], x, p)
-        ps = jnp.where(better, s, ps)
+        p, ps = _keep_better(x, s, p, ps)
         best = jnp.min(ps)
         if progress is not None:
             jax.debug.callback(_report, progress, index, t + 1, best)
@@ -274,6 +250,124 @@ def _trial(key, index, loss_fn, low, high, cyclic, settings: _Settings, progress
     (_, _, p, ps, bad), history = jax.lax.scan(epoch, init, jnp.arange(settings.n_epochs))
     i = jnp.argmin(ps)
     return p[i], ps[i], jnp.concatenate([jnp.min(s)[None], history]), bad
+
+
+def _start(key, m: int, n: int):
+    """Initial positions, velocities (half-diff) and the seed of the per-epoch random numbers."""
+    k_x, k_v, k_run = jax.random.split(key, 3)
+    x = jax.random.uniform(k_x, (m, n), jnp.float32)
+    v = 0.5 * (jax.random.uniform(k_v, (m, n), jnp.float32) - x)  # half-diff
+    return x, v, jax.random.bits(k_run, (), jnp.uint32)
+
+
+def _evaluate(loss_fn, low, high, x, settings: _Settings):
+    """Losses of the swarm at normalised positions ``x`` (non-finite → +inf) and their count."""
+    m, n = x.shape
+    units = low + x * (high - low)
+    s = loss_fn(units) if settings.batched else jax.vmap(_scalar(loss_fn))(units)
+    if s.shape != (m,) or s.dtype.kind != "f":  # checked once, while tracing
+        raise TypeError(
+            f"loss_fn must return one loss per agent for a {(m, n)} input, got "
+            f"{_checks.describe(s)}"
+        )
+    s = s.astype(jnp.float32)
+    finite = jnp.isfinite(s)
+    return jnp.where(finite, s, jnp.inf), jnp.sum(~finite)
+
+
+def _move(x, v, p, ps, t, seed, cyclic, settings: _Settings):
+    """One step of Eq. 14-15 (epoch ``t``, counting from 0) and the boundary rule."""
+    m, n = x.shape
+    # cheaper than threefry; the barrier keeps XLA from recomputing the hash in every user
+    r1, r2, r3 = jax.lax.optimization_barrier(counter_uniform(seed, t, (3, m, n)))
+    g = _neighbourhood_best(p, ps, settings.topology)
+    a, b, c = settings.inertia
+    w = a + b * jnp.power(jnp.float32(c), jnp.asarray(t).astype(jnp.float32))
+    v = w * v + settings.c1 * r1 * _delta(p, x, cyclic) + settings.c2 * r2 * _delta(g, x, cyclic)
+    return _bound(r3, x + settings.dt * v, v, cyclic, settings.boundary)
+
+
+def _keep_better(x, s, p, ps):
+    better = s < ps
+    return jnp.where(better[:, None], x, p), jnp.where(better, s, ps)
+
+
+class Swarm(eqx.Module):
+    """A swarm advanced one epoch at a time from Python (:func:`swarm_start`,
+    :func:`swarm_epoch`), for callers that stop early, compare trials between epochs or change
+    the loss on the way. Positions are normalised to ``[0, 1]``; the moves are :func:`pso`'s.
+
+    Attributes:
+        x, v: positions and velocities ``(M, P)``; p, ps: personal bests and their losses.
+        seed: seed of the per-epoch random numbers; epoch: epochs done.
+        n_nonfinite: evaluations that gave NaN or infinity.
+    """
+
+    x: Float[Array, "M P"]
+    v: Float[Array, "M P"]
+    p: Float[Array, "M P"]
+    ps: Float[Array, " M"]
+    seed: Array
+    epoch: Int[Array, ""]
+    n_nonfinite: Int[Array, ""]
+
+    @property
+    def best(self) -> Float[Array, ""]:
+        return jnp.min(self.ps)
+
+    def best_params(self, low, high) -> Float[Array, " P"]:
+        """The best personal position in the caller's units."""
+        return low + self.p[jnp.argmin(self.ps)] * (high - low)
+
+
+def swarm_settings(n_agents: int, **options) -> _Settings:
+    """Settings of :func:`swarm_start` / :func:`swarm_epoch` (options as in :func:`pso`, with
+    its defaults; ``n_epochs`` is unused)."""
+    defaults = {"topology": "lbest", "boundary": "random_absorb", "dt": 0.2, "c1": 2.0,
+                "c2": 2.0, "inertia": (0.4, 0.6, 0.98), "batched": False}  # fmt: skip
+    return _Settings(n_agents=n_agents, n_epochs=1, **(defaults | options))
+
+
+@eqx.filter_jit
+def _positions(key, n_agents: int, n: int):
+    return _start(key, n_agents, n)
+
+
+@eqx.filter_jit
+def swarm_evaluate(loss_fn, low, high, x, settings: _Settings):
+    """:func:`pso`'s evaluation of normalised positions: the one compile that holds the loss."""
+    return _evaluate(loss_fn, low, high, x, settings)
+
+
+def swarm_start(key, loss_fn, low, high, settings: _Settings) -> Swarm:
+    """The initial swarm of :func:`pso`'s trial with this key, evaluated."""
+    x, v, seed = _positions(key, settings.n_agents, low.shape[0])
+    s, bad = swarm_evaluate(loss_fn, low, high, x, settings)
+    return Swarm(x, v, x, s, seed, jnp.int32(0), bad)
+
+
+@eqx.filter_jit
+def _moved(swarm: Swarm, cyclic, settings: _Settings):
+    return _move(swarm.x, swarm.v, swarm.p, swarm.ps, swarm.epoch, swarm.seed, cyclic, settings)
+
+
+@eqx.filter_jit
+def _absorbed(swarm: Swarm, x, v, s, bad) -> Swarm:
+    p, ps = _keep_better(x, s, swarm.p, swarm.ps)
+    return Swarm(x, v, p, ps, swarm.seed, swarm.epoch + 1, swarm.n_nonfinite + bad)
+
+
+def swarm_epoch(swarm: Swarm, loss_fn, low, high, cyclic, settings: _Settings) -> Swarm:
+    """``swarm`` one epoch on (the same moves as :func:`pso`)."""
+    x, v = _moved(swarm, cyclic, settings)
+    s, bad = swarm_evaluate(loss_fn, low, high, x, settings)
+    return _absorbed(swarm, x, v, s, bad)
+
+
+def swarm_rescore(swarm: Swarm, loss_fn, low, high, settings: _Settings) -> Swarm:
+    """``swarm`` with its personal bests re-evaluated by another loss (e.g. a finer one)."""
+    ps, bad = swarm_evaluate(loss_fn, low, high, swarm.p, settings)
+    return eqx.tree_at(lambda w: (w.ps, w.n_nonfinite), swarm, (ps, swarm.n_nonfinite + bad))
 
 
 def _scalar(loss_fn: Callable) -> Callable:

@@ -29,7 +29,8 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from jface import _checks
-from jface.optim import PSOResult, TextureStats, pso, texture_distance, texture_stats
+from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
+from jface.optim._pso import Swarm, swarm_epoch, swarm_settings, swarm_start
 from jface.optim._texture import _stats
 from jface.wrinkles._drawing import (
     BETA,
@@ -56,8 +57,11 @@ PAPER_NAMES = ("d", *(f"{lv}.{n}" for lv in (1, 2) for n in LEVEL_NAMES), "fnois
 DRAWING_NAMES = ("wrinkle_width", "pore_width", "blend", "skew", "cushion", "sperturb")
 #: Default α_d search range: Table 1 allows [0.001, 0.05]; a patch holds a few hundred pores.
 D_RANGE = (0.02, 0.05)
-#: Default number of α_d values whose pores and graphs are precomputed (steps of 2–5 % of α_d).
-D_LEVELS = 32
+#: Number of α_d values whose pores and graphs are precomputed, per mode: building them is most
+#: of a fit's fixed cost; fast mode's 16 step α_d by 4–10 %, the paper mode's 32 by 2–5 %.
+D_LEVELS = {"fast": 16, "paper": 32}
+#: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
+STALL_TOLERANCE, PATIENCE = 1e-3, 10
 
 
 class WrinkleFit(eqx.Module):
@@ -71,6 +75,8 @@ class WrinkleFit(eqx.Module):
         names: the fitted parameter names, in the order of ``swarm.params`` (static).
         sim_key: the simulation key of the best trial (reproduces ``fitted``).
         fitted: the synthesised map of ``levels``, ``(H, W)``.
+        interrupted: the fit was stopped (Ctrl-C) and reports the best found so far, unrefined.
+        epochs_run: epochs each trial ran (static).
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
@@ -80,6 +86,8 @@ class WrinkleFit(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     sim_key: Array
     fitted: Float[Array, "H W"]
+    interrupted: bool = eqx.field(static=True, default=False)
+    epochs_run: tuple[int, ...] = eqx.field(static=True, default=())
 
 
 class _Layout(eqx.Module):
@@ -332,7 +340,8 @@ def fit_wrinkles(
     n_trials: int = 3,
     n_steps: int = 50,
     refine_steps: int = 30,
-    d_levels: int = D_LEVELS,
+    d_levels: int | None = None,
+    mode: str = "fast",
     progress=None,
 ) -> WrinkleFit:
     """Fit two-level wrinkle parameters to a displacement patch (§4.2 of Weiss et al. 2023).
@@ -354,20 +363,34 @@ def fit_wrinkles(
         n_steps: simulation steps per level (paper: 50).
         refine_steps: BFGS steps on the drawing parameters afterwards (0: none).
         d_levels: α_d values (evenly spaced over ``d_range``) whose pores and graphs are built
-            once; an agent simulates with the nearest, and that value is what the result reports.
-        progress: passed to :func:`jface.optim.pso`.
+            once (default: :data:`D_LEVELS` of the mode); an agent simulates with the nearest,
+            and that value is what the result reports.
+        mode: ``"fast"`` (default): the trials race by successive halving (each runs
+            ``n_epochs // 8`` epochs, the better half goes on; the last runs up to ``n_epochs``)
+            and the swarm stops when its best loss fell by less than 0.1 % over 10 epochs;
+            ``"paper"``: every trial runs all ``n_epochs`` (the paper's procedure).
+        progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
+            ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
+            found so far, unrefined, with ``interrupted`` set.
 
     Returns:
         A :class:`WrinkleFit`.
 
     Raises:
-        TypeError/ValueError: a non-float, non-2-D, too small, non-finite or constant patch,
-            unknown names, bad ranges.
+        TypeError/ValueError: a non-float, non-2-D, non-square, too small, non-finite or
+            constant patch, unknown names, bad ranges or counts.
     """
     key = _checks.key(key)
     target = _checks.float_array(target_patch, "target_patch", ndim=2, dtype=jnp.float32)
-    if min(target.shape) < 64:
-        raise ValueError(f"target_patch must be at least 64×64, got {target.shape}")
+    if target.shape[0] != target.shape[1]:
+        raise ValueError(
+            f"target_patch must be square (the fit draws a periodic map), got {target.shape}"
+        )
+    if target.shape[0] < 64:
+        raise ValueError(
+            f"target_patch must be at least 64×64 (the loss compares 4 pyramid levels), got "
+            f"{target.shape}"
+        )
     if float(jnp.std(target)) == 0.0:
         raise ValueError("target_patch is constant: there is no texture to fit")
     names = tuple(names)
@@ -394,59 +417,108 @@ def fit_wrinkles(
     low, high, cyclic = _bounds(names, d_range, bounds)
 
     n_steps = _checks.integer(n_steps, "n_steps", low=1)
-    d_levels = _checks.integer(d_levels, "d_levels", low=2)
+    mode = _checks.choice(mode, "mode", ("fast", "paper"))
+    d_levels = _checks.integer(D_LEVELS[mode] if d_levels is None else d_levels, "d_levels", low=2)
+    n_trials = _checks.integer(n_trials, "n_trials", low=1)
+    n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
+    settings = swarm_settings(_checks.integer(n_agents, "n_agents", low=3), batched=True)
     k_layout, k_sim, k_swarm = jax.random.split(key, 3)
     layout = _layout(k_layout, target.shape, d_range, n_steps, d_levels)
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
-    # one swarm per trial, each with its own simulation key; all share one compile
-    reporter = None if progress is None else _TrialProgress(progress)
-    trials = []
-    for t, (k, sk) in enumerate(zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True)):
-        if reporter is not None:
-            reporter.trial = t
-        loss = _SwarmLoss(sk, target_stats, base, layout, names)
-        trials.append(
-            pso(
-                k,
-                loss,
-                (low, high),
-                n_agents=n_agents,
-                n_epochs=n_epochs,
-                cyclic=cyclic,
-                batched=True,
-                progress=reporter,
-            )
-        )
-    best = int(np.argmin([float(r.loss) for r in trials]))
-    swarm = _merge(trials, best)
+    # one swarm per trial, each with its own simulation key; all share one compiled loss
+    runs = [
+        _Trial(k, _SwarmLoss(sk, target_stats, base, layout, names))
+        for k, sk in zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True)
+    ]
+    low, high = low.astype(np.float32), high.astype(np.float32)
+    search = (low, high, cyclic, settings)
+    interrupted = False
+    try:
+        if mode == "paper":
+            for t, run in enumerate(runs):
+                run.advance(n_epochs, search, t, progress)
+        else:
+            _halve(runs, n_epochs, search, progress)
+    except KeyboardInterrupt:  # keep what the swarms found so far
+        interrupted = True
+    swarm = _result(runs, low, high)
+    epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
+    best = int(swarm.best_trial)
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
+    if interrupted:
+        sims, levels = _simulate(sim_key, levels, layout)
+        image = _draw(sim_key, sims, levels, layout)
+        return WrinkleFit(
+            levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
+        )
     refined, loss, image = _refine(
         sim_key, levels, swarm.loss, layout, target_stats, names, refine_steps
     )
-    return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image)
+    return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image, False, epochs)
 
 
-class _TrialProgress:
-    """Reports ``(trial, epoch, best)`` for consecutive single-trial swarms. One object serves
-    every trial (the swarm's compiled run is keyed on it, so the trials share one compile)."""
+class _Trial:
+    """One trial's swarm, advanced an epoch at a time, with its best loss after each epoch."""
 
-    def __init__(self, progress):
-        self.progress, self.trial = progress, 0
+    def __init__(self, key, loss: _SwarmLoss):
+        self.key, self.loss, self.swarm, self.history = key, loss, None, []
 
-    def __call__(self, _trial, epoch, best):
-        self.progress(self.trial, epoch, best)
+    def advance(self, epochs: int, search, index: int, progress, stall: bool = False) -> None:
+        """Up to ``epochs`` more epochs (the first call starts the swarm); with ``stall``, stop
+        once the best loss fell by less than ``STALL_TOLERANCE`` over ``PATIENCE`` epochs."""
+        low, high, cyclic, settings = search
+        if self.swarm is None:
+            self.swarm = swarm_start(self.key, self.loss, low, high, settings)
+            self.history.append(float(self.swarm.best))
+        for _ in range(epochs):
+            if stall and self.stalled():
+                return
+            self.swarm = swarm_epoch(self.swarm, self.loss, low, high, cyclic, settings)
+            self.history.append(float(self.swarm.best))
+            if progress is not None:
+                progress(index, len(self.history) - 1, self.history[-1])
+
+    def stalled(self) -> bool:
+        h = self.history
+        return len(h) > PATIENCE and h[-PATIENCE - 1] - h[-1] <= STALL_TOLERANCE * abs(h[-1])
 
 
-def _merge(trials: list[PSOResult], best: int) -> PSOResult:
+def _halve(runs: list[_Trial], n_epochs: int, search, progress) -> None:
+    """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs, the better half
+    goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
+    early when it stalls."""
+    rung = max(1, n_epochs // 8)
+    alive = list(range(len(runs)))
+    while len(alive) > 1:
+        for t in alive:
+            runs[t].advance(rung, search, t, progress)
+        alive = sorted(alive, key=lambda t: runs[t].history[-1])[: -(-len(alive) // 2)]
+    (t,) = alive
+    done = max(0, len(runs[t].history) - 1)
+    runs[t].advance(n_epochs - done, search, t, progress, stall=True)
+
+
+def _result(runs: list[_Trial], low, high) -> PSOResult:
+    """The trials as one :class:`PSOResult`; histories of trials that stopped early are padded
+    with their final best (trials never started, after an interrupt, are left out)."""
+    runs = [r for r in runs if r.swarm is not None]
+    if not runs:
+        raise KeyboardInterrupt  # nothing found yet
+    longest = max(len(r.history) for r in runs)
+    history = [r.history + [r.history[-1]] * (longest - len(r.history)) for r in runs]
+    swarms: list[Swarm] = [r.swarm for r in runs]
+    losses = jnp.stack([w.best for w in swarms])
+    best = int(jnp.argmin(losses))
+    params = jnp.stack([w.best_params(low, high) for w in swarms])
     return PSOResult(
-        params=trials[best].params,
-        loss=trials[best].loss,
-        history=jnp.concatenate([r.history for r in trials]),
-        trial_params=jnp.concatenate([r.trial_params for r in trials]),
-        trial_losses=jnp.concatenate([r.trial_losses for r in trials]),
-        n_nonfinite=jnp.concatenate([r.n_nonfinite for r in trials]),
+        params=params[best],
+        loss=losses[best],
+        history=jnp.asarray(history, jnp.float32),
+        trial_params=params,
+        trial_losses=losses,
+        n_nonfinite=jnp.stack([w.n_nonfinite for w in swarms]),
         best_trial=jnp.asarray(best),
     )
 
