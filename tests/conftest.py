@@ -1,5 +1,6 @@
 """Strict numerics for every test: float64 available, strict dtype promotion, seeded keys."""
 
+import functools
 from pathlib import Path
 
 import jax
@@ -174,6 +175,7 @@ def written_figures(monkeypatch) -> dict:
         importlib.import_module(name)
     real, found = io.write_figure, {}
 
+    @functools.wraps(real)  # the stand-in keeps the writer's name and docstring (test_api)
     def capture(path, figure, **kwargs):
         written = real(path, figure, **kwargs)
         found[Path(path).name] = figure
