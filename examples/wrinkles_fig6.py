@@ -1,9 +1,10 @@
 """Weiss et al. 2023, Fig. 6: the effect of each simulation parameter at its maximum.
 
 One pore graph, seven parameter sets simulated at once with ``jax.vmap`` (default; α_dist = 5;
-α_cont = 0.01; α_sim = 2; α_cross = 1; α_deposit at its minimum and maximum), drawn side by side,
-then the same agents with differing pore distances α_d run through the whole pipeline (sampling,
-graph, simulation) in one vmapped call — the shape of a particle-swarm epoch.
+α_cont = 0.5, in jface's range of docs/departures.md; α_sim = 2; α_cross = 1; α_deposit at its
+minimum and maximum), drawn side by side, then the same agents with differing pore distances α_d
+run through the whole pipeline (sampling, graph, simulation) in one vmapped call — the shape of
+a particle-swarm epoch.
 
 Run: ``python examples/wrinkles_fig6.py --out fig6``
 """
@@ -28,7 +29,7 @@ from jface.wrinkles import (
 PANELS = {
     "default": {},
     "dist 5": {"dist": 5.0},
-    "cont 0.01": {"cont": 0.01},
+    "cont 0.5": {"cont": 0.5},
     "sim 2": {"sim": 2.0},
     "cross 1": {"cross": 1.0},
     "deposit min": {"deposit": 0.01},
