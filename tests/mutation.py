@@ -126,8 +126,8 @@ MUTANTS = (
            "r1, r2, r3 = jax.lax.optimization_barrier(jnp.broadcast_to("
            "counter_uniform(seed, t, (3, m, 1)), (3, m, n)))", PSO),
     Mutant("pso-inertia-off-by-one", P,
-           "w = a + b * jnp.power(jnp.float32(c), t.astype(jnp.float32))",
-           "w = a + b * jnp.power(jnp.float32(c), t.astype(jnp.float32) + 1)", PSO),
+           "w = a + b * jnp.power(jnp.float32(c), jnp.asarray(t).astype(jnp.float32))",
+           "w = a + b * jnp.power(jnp.float32(c), jnp.asarray(t).astype(jnp.float32) + 1)", PSO),
     Mutant("pso-absorb-keeps-velocity", P, "inside = r\n        v = jnp.where(out, 0.0, v)",
            "inside = r", PSO),
     Mutant("pso-ring-shifted", P, "shift = jnp.argmin(ring, axis=0) - 1",
