@@ -58,7 +58,8 @@ PSO = (
     KA,
     "tests/test_optim_pso.py",
     "-k",
-    "swarm or sphere or rosenbrock or lbest or boundary or history or delta or bounds",
+    "swarm or sphere or rosenbrock or lbest or boundary or history or delta or bounds or "
+    "free_flight or absorb",
 )
 FA = (
     KAF,

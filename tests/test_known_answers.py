@@ -263,6 +263,42 @@ def test_free_flight_follows_the_inertia_schedule():
     np.testing.assert_allclose(ratios, np.broadcast_to(want[:, None, None], ratios.shape), 1e-2)
 
 
+def test_random_absorb_stops_a_coordinate_where_it_left_the_box():
+    # w = 1, c1 = c2 = 0, Δt = 1: each coordinate moves by its constant velocity until it leaves
+    # [0, 1]; random_absorb then puts it at a random in-box value with zero velocity, so it
+    # never moves again (Helwig et al. 2013, the paper's boundary handling)
+    seen = []
+
+    def loss(x):
+        jax.debug.callback(lambda p: seen.append(np.asarray(p, np.float64)), x)
+        return jnp.sum(x, axis=-1)
+
+    pso(
+        jax.random.key(6),
+        loss,
+        (np.zeros(3), np.ones(3)),
+        n_agents=8,
+        n_epochs=8,
+        dt=1.0,
+        c1=0.0,
+        c2=0.0,
+        inertia=(1.0, 0.0, 0.5),
+        boundary="random_absorb",
+        batched=True,
+    )
+    path = np.stack(seen)  # (evaluations, agents, dims)
+    assert np.all((path >= 0) & (path <= 1))
+    steps = np.diff(path, axis=0)
+    left = 0
+    for agent, dim in np.ndindex(steps.shape[1:]):
+        d = steps[:, agent, dim]
+        jumps = np.flatnonzero(np.abs(d - d[0]) > 1e-6)
+        if jumps.size:  # the absorbing step, then no more motion
+            left += 1
+            np.testing.assert_array_equal(d[jumps[0] + 1 :], 0.0)
+    assert left >= steps.shape[1] * steps.shape[2] // 2
+
+
 def test_full_continuation_weight_leaves_no_orientation_term(graph):
     # Eq. 3 with α_cont = 1: (1 − α_cont) p_pref vanishes, so from zero weights (p_cont = 0) no
     # half-edge has a positive score and nothing is deposited
