@@ -122,6 +122,19 @@ def gravel() -> np.ndarray:
     return data.gravel().astype(np.float64) / 255.0
 
 
+def write_aged_maps(folder: Path, gravel: np.ndarray, ages, size: int) -> list[str]:
+    """Gravel crops of growing amplitude, one per age, as ``f<i>.exr`` in ``folder``, with their
+    records in ``folder/meta.json``: a small population for the database commands."""
+    from jface import io
+
+    maps = []
+    for i in range(len(ages)):
+        image = gravel[i * 32 : i * 32 + size, :size].astype(np.float32) * (1 + i)
+        maps.append(str(io.write_exr(folder / f"f{i}.exr", image)))
+    io.write_json(folder / "meta.json", [{"id": f"f{i}", "age": a} for i, a in enumerate(ages)])
+    return maps
+
+
 @pytest.fixture(scope="session")
 def brick() -> np.ndarray:
     """scikit-image's real brick texture (CC0), 512×512, float64 in [0, 1]."""

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import write_aged_maps
 from PIL import Image
 
 from jface import io, render
@@ -168,12 +169,7 @@ def test_cli_analyze_synthesize_render(tmp_path, gravel, capsys):
 
 
 def test_cli_db_build_and_compare(tmp_path, gravel, capsys):
-    maps, records = [], []
-    for i in range(4):
-        image = gravel[i * 32 : i * 32 + 128, :128].astype(np.float32) * (1 + i)
-        maps.append(str(io.write_exr(tmp_path / f"f{i}.exr", image)))
-        records.append({"id": f"f{i}", "age": 20 + 15 * i})
-    io.write_json(tmp_path / "meta.json", records)
+    maps = write_aged_maps(tmp_path, gravel, (20, 35, 50, 65), 128)
     db = tmp_path / "db.npz"
     args = ["db", "build", *maps, "--out", str(db), "--metadata", str(tmp_path / "meta.json")]
     assert main([*args, "--grid", "8", "--scales", "3", "--chunk", "3"]) == 0

@@ -9,7 +9,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 import pytest
-from conftest import titled, value_images_have_colour_bars
+from conftest import titled, value_images_have_colour_bars, write_aged_maps
 from PIL import Image
 
 from jface import detail, faces, io, plots
@@ -211,12 +211,7 @@ def test_demo_page_shows_steps_done_and_the_failed_one(tmp_path, monkeypatch, ca
 
 def test_figures_of_analyze_and_db_compare(tmp_path, gravel, written_figures):
     written = written_figures
-    maps, records = [], []
-    for i in range(3):
-        image = gravel[i * 32 : i * 32 + 64, :64].astype(np.float32) * (1 + i)
-        maps.append(str(io.write_exr(tmp_path / f"f{i}.exr", image)))
-        records.append({"id": f"f{i}", "age": 20 + 30 * i})
-    io.write_json(tmp_path / "meta.json", records)
+    maps = write_aged_maps(tmp_path, gravel, (20, 50, 80), 64)
     assert main(["analyze", maps[0], "--out", str(tmp_path / "stats"), "--grid", "4"]) == 0
     db = tmp_path / "db.npz"
     build = ["db", "build", *maps, "--out", str(db), "--metadata", str(tmp_path / "meta.json")]
