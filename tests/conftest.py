@@ -1,6 +1,9 @@
 """Strict numerics for every test: float64 available, strict dtype promotion, seeded keys."""
 
 import functools
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import jax
@@ -9,6 +12,15 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+# command-line runs keep compiled programs for this session only, not in the user's cache
+_XLA_CACHE = None if "JFACE_CACHE_DIR" in os.environ else tempfile.mkdtemp(prefix="jface-xla-")
+if _XLA_CACHE:
+    os.environ["JFACE_CACHE_DIR"] = _XLA_CACHE
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _XLA_CACHE:
+        shutil.rmtree(_XLA_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -137,4 +137,6 @@ def test_covering_spec_and_stack_graphs_keep_every_graph():
             np.sum(stacked.half_mask[i, :n], -1), np.sum(auto.half_mask[:n], -1)
         )
     assert stacked.half_mask.shape[-1] == max(int(g.degree.max()) for g in graphs)
-    assert stacked.positions.shape[1] == max(int(p.count) for p in sets) < 1300
+    # slots are trimmed to the batch's use, rounded up by at most an eighth (shared shapes)
+    most = max(int(p.count) for p in sets)
+    assert most <= stacked.positions.shape[1] <= most * 9 // 8 < 1300

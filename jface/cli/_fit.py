@@ -14,7 +14,13 @@ from jface import plots
 from jface.cli import deprecated_alias
 from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
-from jface.wrinkles import ParamUnits, fit_wrinkles, params_to_json, parse_patch_size
+from jface.wrinkles import (
+    REFINE_STEPS,
+    ParamUnits,
+    fit_wrinkles,
+    params_to_json,
+    parse_patch_size,
+)
 
 
 def register(subparsers) -> None:
@@ -57,7 +63,10 @@ def register(subparsers) -> None:
         "than 0.1 %% over 10 epochs)",
     )  # fmt: skip
     parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
-    parser.add_argument("--refine-steps", type=int, default=30, help="BFGS steps (0: none)")
+    parser.add_argument(
+        "--refine-steps", type=int,
+        help="BFGS steps on the drawing parameters (0: none; default: 10, 30 with --paper)",
+    )  # fmt: skip
     parser.add_argument(
         "--d-levels", type=int,
         help="α_d values whose pores and graphs are precomputed (default: 16, 32 with --paper)",
@@ -105,6 +114,8 @@ def _fit(args: argparse.Namespace) -> dict:
     patch = read_map(args.patch, args.channel)
     units = _units(args.patch_size, patch.shape)
     mode = "paper" if args.paper else "fast"
+    if args.refine_steps is None:
+        args.refine_steps = REFINE_STEPS[mode]
     total = args.trials * args.epochs if args.paper else _halving_epochs(args.trials, args.epochs)
     # measured on 2 CPU cores: 0.12 s per agent and epoch at 256², plus 90 s of fixed cost
     minutes = (total * args.agents * 0.12 * patch.size / 256**2 + 90) / 60

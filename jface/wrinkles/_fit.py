@@ -18,6 +18,7 @@ fixed.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -41,7 +42,7 @@ from jface.wrinkles._drawing import (
     primitives,
     render,
 )
-from jface.wrinkles._graph import PoreGraph, build_graph, covering_spec, stack_graphs
+from jface.wrinkles._graph import PoreGraph, _round_up, build_graph, covering_spec, trim_batch
 from jface.wrinkles._params import PARAMETER_RANGES, WrinkleParams
 from jface.wrinkles._sampling import sample_pores
 from jface.wrinkles._simulation import N_SAMPLES, simulate
@@ -60,6 +61,9 @@ D_RANGE = (0.02, 0.05)
 #: Number of α_d values whose pores and graphs are precomputed, per mode: building them is most
 #: of a fit's fixed cost; fast mode's 16 step α_d by 4–10 %, the paper mode's 32 by 2–5 %.
 D_LEVELS = {"fast": 16, "paper": 32}
+#: BFGS steps of the refinement, per mode: each costs about seven swarm evaluations (a gradient
+#: through the drawing); fast mode keeps the first 10, which give most of the gain.
+REFINE_STEPS = {"fast": 10, "paper": 30}
 #: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
 STALL_TOLERANCE, PATIENCE = 1e-3, 10
 
@@ -127,30 +131,18 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     shape = tuple(-(-n // _TILE) * _TILE for n in size)
     lo, hi = d_range
     ranges = ((lo, hi), (lo / 2, hi / 2))
-    k1, k2 = jax.random.split(key)
-
-    def pores(d, caps=(None, None)):
-        p1 = sample_pores(k1, d, capacity=caps[0], radius_range=ranges[0], periodic=True)
-        p2 = sample_pores(
-            k2, d / 2, capacity=caps[1], initial=p1, radius_range=ranges[1], periodic=True
-        )
-        return p1, p2
-
-    dense = pores(lo)
+    keys = tuple(jax.random.split(key))
+    dense = _pores(keys, lo, ranges)
     caps = (dense[0].capacity, dense[1].capacity)
-    sparse = pores(hi, caps)
+    sparse = _pores(keys, hi, ranges, caps)
     specs = tuple(covering_spec((dense[i], sparse[i]), ranges[i]) for i in range(2))
     d_values = np.linspace(lo, hi, d_levels, dtype=np.float32)
-    built = [
-        tuple(build_graph(p, spec) for p, spec in zip(pores(d, caps), specs, strict=True))
-        for d in d_values
-    ]
-    graphs = tuple(stack_graphs([g[level] for g in built]) for level in range(2))
+    graphs = tuple(trim_batch(g) for g in _graphs(keys, jnp.asarray(d_values), ranges, caps, specs))
     # the simulation's N: a fixed setting of the fit, about twice the densest graph's edges, so
     # that the fit's 50 steps carve the patch (N = |E| would need ~5x the steps; the paper's
     # 50,000 on a patch of a few thousand edges decays by a quarter per step)
     n_samples = tuple(min(N_SAMPLES, specs[level].k * caps[level]) for level in range(2))
-    entries = _draw_entries(k1, d_values, graphs, shape, n_samples, n_steps)
+    entries = _draw_entries(keys[0], d_values, graphs, shape, n_samples, n_steps)
     # the bins enumerate pairs, so a primitive may touch every tile at no extra cost
     span = (max(shape) // _TILE,) * 2
     return _Layout(
@@ -158,22 +150,57 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     )
 
 
+def _pores(keys, d, ranges, caps=(None, None)):
+    """The two levels' pores of α_d (level 2 at half the distance, starting from level 1's)."""
+    p1 = sample_pores(keys[0], d, capacity=caps[0], radius_range=ranges[0], periodic=True)
+    p2 = sample_pores(
+        keys[1], d / 2, capacity=caps[1], initial=p1, radius_range=ranges[1], periodic=True
+    )
+    return p1, p2
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3, 4))
+def _graphs(keys, d_values, ranges, caps, specs) -> tuple[PoreGraph, PoreGraph]:
+    """Both levels' graphs for every α_d, one after the other (one compile for the whole grid;
+    a batch would hold every grid value's crossing search in memory at once)."""
+
+    def one(d):
+        levels = _pores(keys, d, ranges, caps)
+        return tuple(build_graph(p, spec) for p, spec in zip(levels, specs, strict=True))
+
+    return jax.lax.map(one, d_values)
+
+
 def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int, int]:
     """Binned (primitive, tile) pairs per level that draw the densest and the sparsest α_d of
     the grid with the simulation's default weights and the drawing fields at ``_WIDE``, with
     headroom (2x)."""
     entries = []
+    ends = jnp.asarray([0, len(d_values) - 1])
     for level, bulge in enumerate((True, False)):
-        pairs = 1
-        for i in (0, len(d_values) - 1):
-            g = jax.tree.map(lambda a, i=i: a[i], graphs[level])
-            params = WrinkleParams(d=float(d_values[i]) / (1 + level), **_WIDE)
-            w = simulate(key, g, params, n_steps=n_steps, n_samples=n_samples[level])
-            prims = primitives(key, g, w, params, shape)
-            need = needed_entries(prims, shape, tile=_TILE, bulge=bulge, periodic=True)
-            pairs = max(pairs, need)
-        entries.append(2 * pairs)
+        params = WrinkleParams(d=float(d_values[0]) / (1 + level), **_WIDE)
+        ds = jnp.asarray(d_values)[ends] / (1 + level)
+        prims = _extremes(key, graphs[level], params, ends, ds, shape, n_samples[level], n_steps)
+        pairs = max(
+            needed_entries(one, shape, tile=_TILE, bulge=bulge, periodic=True)
+            for one in (jax.tree.map(lambda a, j=j: a[j], prims) for j in range(len(ends)))
+        )
+        entries.append(_round_up(2 * max(pairs, 1)))
     return tuple(entries)
+
+
+@functools.partial(jax.jit, static_argnums=(5, 6, 7))
+def _extremes(key, graphs, params, ends, ds, shape, n_samples, n_steps):
+    """Primitives of the grid's graphs ``ends``, each simulated with ``params`` at its α_d
+    ``ds`` (one compile per level)."""
+
+    def one(end_d):
+        g = jax.tree.map(lambda a: a[end_d[0]], graphs)
+        p = _with(params, {"d": end_d[1]})
+        w = simulate(key, g, p, n_steps=n_steps, n_samples=n_samples)
+        return primitives(key, g, w, p, shape)
+
+    return jax.lax.map(one, (ends, ds))
 
 
 def _simulate(key, levels: tuple[WrinkleParams, WrinkleParams], layout: _Layout):
@@ -238,12 +265,6 @@ def _binned(key, sims, levels, layout: _Layout):
             entries=opts.entries,
         )  # fmt: skip
         yield k_noise, prims, bins
-
-
-@eqx.filter_jit
-def _fullest_tiles(key, sims, levels, layout: _Layout) -> tuple[Array, ...]:
-    """Primitives in the fullest tile of each level."""
-    return tuple(jnp.max(bins.count) for _, _, bins in _binned(key, sims, levels, layout))
 
 
 def _levels_from(x: Array, names: Sequence[str], base: tuple[WrinkleParams, WrinkleParams]):
@@ -339,7 +360,7 @@ def fit_wrinkles(
     n_epochs: int = 100,
     n_trials: int = 3,
     n_steps: int = 50,
-    refine_steps: int = 30,
+    refine_steps: int | None = None,
     d_levels: int | None = None,
     mode: str = "fast",
     progress=None,
@@ -361,7 +382,8 @@ def fit_wrinkles(
         d_range: search range of α_d (fixes the pore capacities).
         n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
         n_steps: simulation steps per level (paper: 50).
-        refine_steps: BFGS steps on the drawing parameters afterwards (0: none).
+        refine_steps: BFGS steps on the drawing parameters afterwards (0: none; default:
+            :data:`REFINE_STEPS` of the mode).
         d_levels: α_d values (evenly spaced over ``d_range``) whose pores and graphs are built
             once (default: :data:`D_LEVELS` of the mode); an agent simulates with the nearest,
             and that value is what the result reports.
@@ -419,6 +441,9 @@ def fit_wrinkles(
     n_steps = _checks.integer(n_steps, "n_steps", low=1)
     mode = _checks.choice(mode, "mode", ("fast", "paper"))
     d_levels = _checks.integer(D_LEVELS[mode] if d_levels is None else d_levels, "d_levels", low=2)
+    if refine_steps is None:
+        refine_steps = REFINE_STEPS[mode]
+    refine_steps = _checks.integer(refine_steps, "refine_steps", low=0)
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     settings = swarm_settings(_checks.integer(n_agents, "n_agents", low=3), batched=True)
@@ -448,8 +473,7 @@ def fit_wrinkles(
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
     if interrupted:
-        sims, levels = _simulate(sim_key, levels, layout)
-        image = _draw(sim_key, sims, levels, layout)
+        _, levels, _, image = _refine_start(sim_key, levels, layout)
         return WrinkleFit(
             levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
         )
@@ -527,10 +551,35 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
     """BFGS on the fitted drawing fields with the simulation result held fixed. ``start`` is the
     swarm's loss of ``levels``: the answer is kept unless the refinement beats it (a redraw of
     the same parameters can differ from the batched swarm's loss in the last bit)."""
-    sims, levels = _simulate(sim_key, levels, layout)
-    fields = [
+    fields = tuple(
         (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
-    ]
+    )
+    sims, levels, fullest, image = _refine_start(sim_key, levels, layout)
+    if not fields or steps == 0:
+        return levels, start, image
+    # static passes (differentiable) for twice the start's fullest tile: a step whose wider
+    # fields need more is undrawable (inf) and the line search backs off
+    passes = tuple(max(1, -(-2 * int(c) // _CAPACITY)) for c in fullest)
+    best, refined, image_best = _refine_solve(
+        sim_key, sims, levels, layout, target_stats, fields, passes, steps
+    )
+    if not bool(refined < start):  # keep the swarm's answer if the refinement did not help
+        return levels, start, image
+    return best, refined, image_best
+
+
+@eqx.filter_jit
+def _refine_start(sim_key, levels, layout: _Layout):
+    """The best agent's simulation, its fullest tile per level and its map (one compile)."""
+    sims, levels = _simulate(sim_key, levels, layout)
+    fullest = tuple(jnp.max(bins.count) for _, _, bins in _binned(sim_key, sims, levels, layout))
+    return sims, levels, fullest, _draw(sim_key, sims, levels, layout)
+
+
+@eqx.filter_jit
+def _refine_solve(sim_key, sims, levels, layout: _Layout, target_stats, fields, passes, steps):
+    """BFGS over the logits of ``fields`` (static), drawn with ``passes`` (static); the refined
+    levels, their loss and their map."""
 
     def unpack(z):
         changes: tuple[dict, dict] = ({}, {})
@@ -538,11 +587,6 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
             lo, hi = PARAMETER_RANGES[f]
             changes[lv][f] = lo + (hi - lo) * jax.nn.sigmoid(z[i])
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
-
-    # static passes (differentiable) for twice the start's fullest tile: a step whose wider
-    # fields need more is undrawable (inf) and the line search backs off
-    fullest = _fullest_tiles(sim_key, sims, levels, layout)
-    passes = tuple(max(1, -(-2 * int(c) // _CAPACITY)) for c in fullest)
 
     def loss(z, _):
         image, bad = _draw_checked(sim_key, sims, unpack(z), layout, passes)
@@ -553,14 +597,9 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
         u = jnp.clip((getattr(levels[lv], f) - lo) / (hi - lo), 1e-3, 1 - 1e-3)
         return jnp.log(u) - jnp.log1p(-u)
 
-    image = _draw(sim_key, sims, levels, layout)
-    if not fields or steps == 0:
-        return levels, start, image
     z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
     solver = optx.BFGS(rtol=1e-4, atol=1e-6)
     sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
-    refined = loss(sol.value, None)
-    if not bool(refined < start):  # keep the swarm's answer if the refinement did not help
-        return levels, start, image
     best = unpack(sol.value)
-    return best, refined, _draw(sim_key, sims, best, layout)
+    image, _ = _draw_checked(sim_key, sims, best, layout, passes)
+    return best, loss(sol.value, None), image

@@ -35,7 +35,8 @@ from jaxtyping import Array, Bool, Float, Int
 from jface import _checks
 from jface.wrinkles._sampling import Pores
 
-_CHUNK = 32768  # queries per batch in the kNN and crossing kernels (bounds memory)
+_CHUNK = 4096  # queries per batch in the kNN and crossing kernels (bounds memory; only batches
+# below the valid count run, so a small batch saves the padding of sparse graphs)
 
 
 class GraphSpec(NamedTuple):
@@ -143,8 +144,9 @@ def _scatter_rounds(targets, pending, n_rows, cap):
     return lax.fori_loop(0, cap, one, (table, pending))
 
 
-def _window(cell_xy, grid, reach, periodic):
-    """Flat ids ``(W,)`` of the cells within ``reach`` of a cell (sentinel outside the grid)."""
+def _window(cell_xy, grid, reach, periodic, sentinel=None):
+    """Flat ids ``(W,)`` of the cells within ``reach`` of a cell (``sentinel``, default
+    ``grid²``, outside the grid)."""
     r = jnp.arange(-reach, reach + 1, dtype=jnp.int32)
     oy, ox = (a.reshape(-1) for a in jnp.meshgrid(r, r, indexing="ij"))
     cx = cell_xy[0] + ox
@@ -152,11 +154,12 @@ def _window(cell_xy, grid, reach, periodic):
     if periodic:
         return jnp.mod(cy, grid) * grid + jnp.mod(cx, grid)
     inside = (cx >= 0) & (cx < grid) & (cy >= 0) & (cy < grid)
-    return jnp.where(inside, cy * grid + cx, grid * grid)
+    return jnp.where(inside, cy * grid + cx, grid * grid if sentinel is None else sentinel)
 
 
 def _cells(xy, grid):
-    return jnp.clip(jnp.floor(xy * grid).astype(jnp.int32), 0, grid - 1)
+    cell = jnp.floor(xy * jnp.asarray(grid, xy.dtype)).astype(jnp.int32)
+    return jnp.clip(cell, 0, grid - 1)
 
 
 def _angle(delta):
@@ -276,25 +279,36 @@ def _crosses(p2, q1, q2):
     return opposite(cross(p2, q1), cross(p2, q2)) & opposite(cross(e, -q1), cross(e, p2 - q1))
 
 
-@functools.partial(jax.jit, static_argnames=("cap", "grid", "cell_cap", "periodic"))
+def _midpoint_grid(edge_length, edge_mask, max_grid):
+    """Cells per side of the edge-midpoint grid: cells at least half the longest edge, so the
+    crossing search reads the 5x5 cells around an edge; at most ``max_grid``."""
+    longest = jnp.maximum(jnp.max(jnp.where(edge_mask, edge_length, 0.0)), 1e-6)
+    return jnp.clip(jnp.floor(2.0 / longest), 1, max_grid).astype(jnp.int32)
+
+
+@functools.partial(jax.jit, static_argnames=("cap", "max_grid", "cell_cap", "periodic"))
 def _crossing_lists(
-    positions, edge_nodes, edge_delta, edge_mask, edge_count, *, cap, grid, cell_cap, periodic
-):
+    positions, edge_nodes, edge_delta, edge_mask, edge_count, edge_length, *, cap, max_grid,
+    cell_cap, periodic,
+):  # fmt: skip
+    # the grid follows the edges (a traced size in a table of max_grid² cells), so graphs of
+    # any density share one compile and read about the same number of candidates per edge
+    grid = _midpoint_grid(edge_length, edge_mask, max_grid)
     n_edges = edge_nodes.shape[0]
     pa = positions[edge_nodes[:, 0]]
     mid = pa + 0.5 * edge_delta
     if periodic:
         mid = jnp.mod(mid, 1.0)
     cell = _cells(mid, grid)
-    cid = jnp.where(edge_mask, cell[:, 1] * grid + cell[:, 0], grid * grid)
-    table, cell_overflow = _bucket(cid, grid * grid, cell_cap)
+    cid = jnp.where(edge_mask, cell[:, 1] * grid + cell[:, 0], max_grid * max_grid)
+    table, cell_overflow = _bucket(cid, max_grid * max_grid, cell_cap)
     # per-cell data inline, so a query reads contiguous blocks
     nodes_t = jnp.concatenate([edge_nodes, jnp.full((1, 2), -1, edge_nodes.dtype)])[table]
     geom = jnp.concatenate([pa, edge_delta], axis=1)
     geom_t = jnp.concatenate([geom, jnp.zeros((1, 4), geom.dtype)])[table]
 
     def query(e):  # one edge
-        window = _window(cell[e], grid, 2, periodic)
+        window = _window(cell[e], grid, 2, periodic, max_grid * max_grid)
         cand = table[window].reshape(-1)
         nodes_f = nodes_t[window].reshape(-1, 2)
         g = geom_t[window].reshape(-1, 4)
@@ -309,7 +323,8 @@ def _crossing_lists(
     lists, counts = _map_first(query, edge_count, n_edges, _CHUNK)
     counts = jnp.where(edge_mask, counts, 0)
     cmask = jnp.arange(cap, dtype=jnp.int32) < counts[:, None]
-    return jnp.where(cmask, lists, 0), cmask, cell_overflow, jnp.max(counts)
+    sparse = periodic & (grid < 5)  # the 5x5 window would wrap onto itself
+    return jnp.where(cmask, lists, 0), cmask, cell_overflow, jnp.max(counts), sparse
 
 
 def graph_spec(
@@ -379,22 +394,23 @@ def graph_spec(
 
 
 def _edge_grid(pores: Pores, topo: dict) -> dict[str, int]:
-    """Edge-midpoint grid (cells ≥ half the longest edge) and cell capacity for concrete edges,
-    rounded (grid down to a multiple of 4, capacity up to one of 16) so similar graphs share a
-    compile of the crossing kernel."""
-    longest = max(float(jnp.max(topo["edge_length"])), 1e-6)
-    grid = max(1, math.floor(2.0 / longest))
+    """Table size and cell capacity of the edge-midpoint grid for concrete edges, both rounded up
+    to a multiple of 16 so that similar graphs share a compile of the crossing kernel."""
+    grid = int(_midpoint_grid(topo["edge_length"], topo["edge_mask"], 1 << 30))
     if pores.periodic and grid < 5:
         raise ValueError("the pores are too sparse for a periodic graph (edges longer than 0.4)")
-    grid = grid - grid % 4 if grid >= 8 else grid
-    mid = np.asarray(pores.positions)[np.asarray(topo["edge_nodes"][:, 0])] + 0.5 * np.asarray(
-        topo["edge_delta"]
-    )
+    capacity = _occupancy(pores, topo, grid)
+    return {"edge_grid": -(-grid // 16) * 16, "edge_cell_capacity": -(-capacity // 16) * 16}
+
+
+def _occupancy(pores: Pores, topo: dict, grid: int) -> int:
+    """Most edge midpoints in one cell of a ``grid`` x ``grid`` grid (concrete edges)."""
+    mid = np.asarray(pores.positions)[np.asarray(topo["edge_nodes"][:, 0])]
+    mid = mid + 0.5 * np.asarray(topo["edge_delta"])
     mid = np.mod(mid, 1.0) if pores.periodic else mid
     cells = np.clip(np.floor(mid * grid).astype(np.int64), 0, grid - 1)
     ids = (cells[:, 1] * grid + cells[:, 0])[np.asarray(topo["edge_mask"])]
-    capacity = int(np.bincount(ids).max()) if ids.size else 1
-    return {"edge_grid": grid, "edge_cell_capacity": -(-capacity // 16) * 16}
+    return int(np.bincount(ids).max()) if ids.size else 1
 
 
 def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> PoreGraph:
@@ -444,13 +460,13 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
             break
         spec = spec._replace(knn_reach=min(2 * spec.knn_reach, spec.knn_grid))  # sparse pores
     if not _checks.is_traced(topo["edge_length"]):
-        # size the midpoint grid from the edges present: a spec covering a range of α_d sizes it
-        # for the sparsest pores, which costs the densest ~8x the candidate tests
+        # size the midpoint grid's table from the edges present (a spec covering a range of α_d
+        # holds the densest pores' table and the occupancy at each graph's own grid)
         spec = spec._replace(**_edge_grid(pores, topo))
-    crossings, cmask, edge_overflow, max_cross = _crossing_lists(
+    crossings, cmask, edge_overflow, max_cross, flags["sparse"] = _crossing_lists(
         pores.positions, topo["edge_nodes"], topo["edge_delta"], topo["edge_mask"],
-        topo["edge_count"], cap=spec.max_crossings, grid=spec.edge_grid,
-        cell_cap=spec.edge_cell_capacity, periodic=pores.periodic,
+        topo["edge_count"], topo["edge_length"], cap=spec.max_crossings,
+        max_grid=spec.edge_grid, cell_cap=spec.edge_cell_capacity, periodic=pores.periodic,
     )  # fmt: skip
     flags["edge_cell"] = edge_overflow
     flags["crossings"] = max_cross > spec.max_crossings
@@ -461,6 +477,7 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
         "degree": f"a pore has more than max_degree={spec.max_degree} half-edges "
         "(raise GraphSpec.max_degree)",
         "edge_cell": "an edge-midpoint grid cell holds more edges than edge_cell_capacity",
+        "sparse": "the pores are too sparse for a periodic graph (edges longer than 0.4)",
         "crossings": f"an edge is crossed by more than max_crossings={spec.max_crossings} edges "
         "(raise GraphSpec.max_crossings)",
     }
@@ -505,32 +522,26 @@ def covering_spec(
     concrete examples (e.g. the densest and the sparsest pore sets of a parameter range).
 
     :func:`graph_spec` sizes the crossing search from the kNN reach, a bound several times the
-    longest edge; here the longest edge, the edge-midpoint cell occupancy and the degree are
-    measured on ``pores`` (with ``headroom``), so the crossing search reads far fewer candidates.
-    ``max_crossings`` keeps its default bound. A graph that exceeds the spec raises, as always.
+    longest edge; here the edge-midpoint grid (each graph's own, from its longest edge) and its
+    cell occupancy and the degree are measured on ``pores`` (with ``headroom``), so the crossing
+    search reads far fewer candidates. ``max_crossings`` keeps its default bound. Grid and
+    occupancy are rounded up to multiples of 16, so pore sets of other seeds mostly get the same
+    spec (and share compiled code). A graph that exceeds the spec raises, as always.
     """
     base = graph_spec(pores[0], k=k, radius_range=radius_range)
-    longest, degree, mids = 0.0, 1, []
+    grid, degree, occupancy = 1, 1, 1
     for p in pores:
         topo, _ = _topology(
             p.positions, p.mask, p.count, k=base.k, deg=base.max_degree, grid=base.knn_grid,
             cell_cap=base.knn_cell_capacity, reach=base.knn_reach, periodic=p.periodic,
         )  # fmt: skip
-        valid = np.asarray(topo["edge_mask"])
-        longest = max(longest, float(jnp.max(topo["edge_length"])))
         degree = max(degree, int(jnp.max(jnp.sum(topo["half_mask"], -1))))
-        mid = np.asarray(p.positions)[np.asarray(topo["edge_nodes"][:, 0])]
-        mid = mid + 0.5 * np.asarray(topo["edge_delta"])
-        mids.append(np.mod(mid, 1.0)[valid] if p.periodic else mid[valid])
-    edge_grid = max(5 if pores[0].periodic else 1, math.floor(2.0 / (headroom * longest)))
-    occupancy = 1
-    for mid in mids:
-        cells = np.clip(np.floor(mid * edge_grid).astype(np.int64), 0, edge_grid - 1)
-        occupancy = max(occupancy, int(np.bincount(cells[:, 1] * edge_grid + cells[:, 0]).max()))
+        own = int(_midpoint_grid(topo["edge_length"], topo["edge_mask"], 1 << 30))
+        grid, occupancy = max(grid, own), max(occupancy, _occupancy(p, topo, own))
     return base._replace(
-        max_degree=min(base.max_degree, degree + 4),
-        edge_grid=edge_grid,
-        edge_cell_capacity=math.ceil(headroom * occupancy) + 4,
+        max_degree=min(base.max_degree, -(-(degree + 4) // 4) * 4),
+        edge_grid=-(-math.ceil(headroom * grid) // 16) * 16,
+        edge_cell_capacity=-(-math.ceil(headroom * occupancy) // 16) * 16,
     )
 
 
@@ -575,9 +586,24 @@ def stack_graphs(graphs: list[PoreGraph] | tuple[PoreGraph, ...]) -> PoreGraph:
     shapes = {tuple(x.shape for x in jax.tree.leaves(g)) for g in graphs}
     if len(shapes) != 1 or graphs[0].positions.ndim != 2:
         raise ValueError("stack_graphs needs single graphs of identical shapes (one GraphSpec)")
-    n = max(int(g.node_count) for g in graphs)
-    e = max(int(g.edge_count) for g in graphs)
-    d = max(int(jnp.max(g.degree)) for g in graphs)
-    c = max(int(jnp.max(jnp.sum(g.crossing_mask, -1))) for g in graphs)
+    return trim_batch(jax.tree.map(lambda *xs: jnp.stack(xs), *graphs))
 
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *[_trim(g, n, e, d, c) for g in graphs])
+
+def trim_batch(batch: PoreGraph) -> PoreGraph:
+    """A batch of concrete graphs (leading axis, e.g. built under ``lax.map`` with one spec) with
+    every slot axis trimmed to what some graph of the batch uses, rounded up by at most an
+    eighth (so batches of other seeds mostly get the same shapes and share compiled code)."""
+    used = (
+        jnp.max(batch.node_count), jnp.max(batch.edge_count), jnp.max(batch.degree),
+        jnp.max(jnp.sum(batch.crossing_mask, -1)),
+    )  # fmt: skip
+    slots = (batch.node_mask.shape[-1], batch.edge_mask.shape[-1], batch.half_mask.shape[-1],
+             batch.crossing_mask.shape[-1])  # fmt: skip
+    n, e, d, c = (min(_round_up(max(int(u), 1)), s) for u, s in zip(used, slots, strict=True))
+    return jax.vmap(lambda g: _trim(g, n, e, d, c))(batch)
+
+
+def _round_up(x: int) -> int:
+    """``x`` rounded up to a multiple of a power of two at most an eighth of it."""
+    step = 1 << max(0, x.bit_length() - 4)
+    return -(-x // step) * step
