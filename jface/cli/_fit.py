@@ -117,8 +117,9 @@ def _fit(args: argparse.Namespace) -> dict:
     if args.refine_steps is None:
         args.refine_steps = REFINE_STEPS[mode]
     total = args.trials * args.epochs if args.paper else _halving_epochs(args.trials, args.epochs)
-    # measured on 2 CPU cores: 0.12 s per agent and epoch at 256², plus 90 s of fixed cost
-    minutes = (total * args.agents * 0.12 * patch.size / 256**2 + 90) / 60
+    # measured on 2 CPU cores: 0.15 s per agent and epoch at 256², plus about 2 min of fixed
+    # cost (1 min when the compiled programs of an earlier run with this seed are cached)
+    minutes = (total * args.agents * 0.15 * patch.size / 256**2 + 120) / 60
     print(
         f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "
         f"trials on a {patch.shape[1]}×{patch.shape[0]} patch: at most about {minutes:.0f} min "
