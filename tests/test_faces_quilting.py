@@ -413,12 +413,11 @@ def test_cli_sample_inpaint_edit(lfw, tmp_path, capsys):
     assert "--image must have the training faces' shape" in capsys.readouterr().err
 
 
-# --- with the global factor models (run when jface.faces has them) ---------------------------
+# --- with the global factor models ------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
 def factor_models(lfw):
-    pytest.importorskip("jface.faces._fa", reason="the factor models are not in this copy")
     fa = faces.fit_factor_analyser(lfw, 8, n_iter=20).model
     mofa = faces.fit_mixture(jax.random.key(0), lfw, 2, 4, n_iter=10).model
     return fa, mofa
