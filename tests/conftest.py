@@ -97,8 +97,10 @@ SLOW = {
         "test_restyle_with_bilinear_model",
     },
     "test_known_answers.py": {"test_one_step_hits_follow_eq3_in_distribution"},
-    # runs of several processes: each starts Python and JAX, some compile a fit (about 3.5 min
-    # for test_distributed.py, 4-5 min for test_distributed_fit.py on two cores)
+    # runs of several processes: each starts Python and JAX, some compile a fit (measured on two
+    # shared cores: 50 s for test_distributed.py, 7.8 min for test_distributed_fit.py, most of it
+    # compiling the fit in four processes: the CPU compilation cache is not shared between the
+    # processes of a jax.distributed run, whose device assignments differ)
     "test_distributed.py": {
         "test_builds_are_byte_identical",
         "test_two_processes_equal_one",
