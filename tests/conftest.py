@@ -99,8 +99,8 @@ SLOW = {
     "test_known_answers.py": {"test_one_step_hits_follow_eq3_in_distribution"},
     # runs of several processes: each starts Python and JAX, some compile a fit (measured on two
     # shared cores: 50 s for test_distributed.py, 7.8 min for test_distributed_fit.py, most of it
-    # compiling the fit in four processes: the CPU compilation cache is not shared between the
-    # processes of a jax.distributed run, whose device assignments differ)
+    # compiling the fit in four processes; on CPU JAX's compilation cache keys include the
+    # device assignment, which apparently keeps the 2-process run from reusing the cache)
     "test_distributed.py": {
         "test_builds_are_byte_identical",
         "test_two_processes_equal_one",
