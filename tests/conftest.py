@@ -121,6 +121,24 @@ SLOW = {
         "test_restyle_with_bilinear_model",
     },
     "test_known_answers.py": {"test_one_step_hits_follow_eq3_in_distribution"},
+    # runs of several processes: each starts Python and JAX, some compile a fit (measured on two
+    # shared cores: 50 s for test_distributed.py, 7.8 min for test_distributed_fit.py, most of it
+    # compiling the fit in four processes; on CPU JAX's compilation cache keys include the
+    # device assignment, which apparently keeps the 2-process run from reusing the cache)
+    "test_distributed.py": {
+        "test_builds_are_byte_identical",
+        "test_two_processes_equal_one",
+        "test_killed_process_resumes",
+        "test_mismatched_process_counts_are_refused",
+        "test_a_failing_process_stops_the_others",
+        "test_cluster_outside_a_cluster_job_is_refused",
+    },
+    "test_distributed_fit.py": {
+        "test_sharded_swarm_equals_the_unsharded_one",
+        "test_two_processes_fit_three_patches_like_three_single_fits",
+        "test_rerun_keeps_finished_patches_and_refits_a_changed_one",
+        "test_mismatched_process_counts_are_refused",
+    },
 }
 
 

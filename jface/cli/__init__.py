@@ -218,11 +218,13 @@ def command_inputs(args: argparse.Namespace) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``jface`` command line; returns the exit status (0, 2 for an error, 130 when
     interrupted)."""
+    from jface.cli._processes import Elsewhere
     from jface.cli._report import run_with_page
 
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
+    name = args.page_title  # the sub-command, e.g. "jface wrinkles fit", names its messages
     _keep_compiled_programs()
     if getattr(args, "deprecated", None):
         old, new = args.deprecated
@@ -237,12 +239,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         ):
             summary = run_with_page(args, argv)
     except KeyboardInterrupt:
-        print(f"jface {args.command}: interrupted; unfinished outputs removed", file=sys.stderr)
+        print(f"{name}: interrupted; unfinished outputs removed", file=sys.stderr)
         return 130
     except (ValueError, TypeError, OSError, OverflowError, MemoryError) as err:
-        print(f"jface {args.command}: error: {_one_line(err)}", file=sys.stderr)
+        print(f"{name}: error: {_one_line(err)}", file=sys.stderr)
         return 2
-    _print_summary(summary or {}, getattr(args, "prose", None), as_json=args.json)
+    if not isinstance(summary, Elsewhere):  # else process 0 of a distributed run reports
+        _print_summary(summary or {}, getattr(args, "prose", None), as_json=args.json)
     return 0
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import importlib.resources
 import json
-import os
 from pathlib import Path
 
 import jax
@@ -14,6 +13,7 @@ from tqdm import tqdm
 
 from jface import detail, io, plots, render
 from jface.cli import deprecated_alias, refuse_shared_names
+from jface.cli._processes import Elsewhere, add_process_options, spread
 from jface.detail._population import check_records
 
 
@@ -130,40 +130,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=8,
         help="maps analysed at once (bounds memory) (default %(default)s)",
     )
-    build.add_argument(
-        "--processes",
-        type=int,
-        default=1,
-        help="processes on this machine, each analysing a share of the maps on its own devices "
-        "(default %(default)s)",
-    )
-    build.add_argument(
-        "--coordinator",
-        metavar="HOST:PORT",
-        help="join a jax.distributed run whose process 0 serves HOST:PORT (with --process-id "
-        "and --num-processes) (default: none)",
-    )
-    build.add_argument(
-        "--process-id",
-        type=int,
-        help="this process's index in [0, --num-processes) (default: none)",
-    )
-    build.add_argument(
-        "--num-processes", type=int, help="processes of the distributed run (default: none)"
-    )
-    build.add_argument(
-        "--cluster",
-        action="store_true",
-        help="join the processes of this cluster job (SLURM, Open MPI, TPU pod), found by "
-        "jax.distributed (default: off)",
-    )
-    build.add_argument(
-        "--timeout",
-        type=float,
-        default=60.0,
-        help="seconds to reach the coordinator, and to notice a process that stopped "
-        "(default %(default)s)",
-    )
+    add_process_options(build, "analysing a share of the maps")
     build.set_defaults(run=_db_build, prose="{faces} faces in {out}")
     compare = db_sub.add_parser(
         "compare", help="compare groups tile by tile (Golovinskiy et al. Fig. 6)"
@@ -317,27 +284,12 @@ def _db_build(args: argparse.Namespace) -> dict:
         records = [{"id": label} for label in labels]
     else:
         records = None  # ids from the file names, as many parent folders as tell them apart
-    joined = args.coordinator is not None or args.process_id is not None
-    if args.processes != 1:
-        if args.processes < 1 or joined or args.num_processes is not None or args.cluster:
-            raise ValueError(
-                f"--processes must be at least 1 and goes without --coordinator, --process-id, "
-                f"--num-processes and --cluster; got --processes {args.processes}"
-            )
-        command = ["db", "build", *args.files, "--out", args.out, "--grid", str(args.grid)]
-        command += ["--scales", str(args.scales), "--chunk", str(args.chunk)]
-        command += ["--metadata", args.metadata] if args.metadata else []
-        command += ["--bins", str(args.bins)] if args.bins is not None else []
-        detail.run_local_processes(command, args.processes, timeout=args.timeout)
-        return {}  # process 0 of the launched processes reports
-    # on CPU, bits must not depend on thread scheduling; JAX reads the flags at its start
-    os.environ["XLA_FLAGS"] = detail.deterministic_cpu_flags(os.environ.get("XLA_FLAGS", ""))
-    if joined or args.num_processes is not None or args.cluster:
-        if args.cluster and joined:
-            raise ValueError("--cluster detects the processes itself; drop --coordinator")
-        detail.join_processes(
-            args.coordinator, args.process_id, args.num_processes, timeout=args.timeout
-        )
+    command = ["db", "build", *args.files, "--out", args.out, "--grid", str(args.grid)]
+    command += ["--scales", str(args.scales), "--chunk", str(args.chunk)]
+    command += ["--metadata", args.metadata] if args.metadata else []
+    command += ["--bins", str(args.bins)] if args.bins is not None else []
+    if spread(args, command):
+        return Elsewhere()  # process 0 of the launched processes reports
     population = detail.build_database(
         files,
         args.out,
@@ -349,7 +301,7 @@ def _db_build(args: argparse.Namespace) -> dict:
         progress=jax.process_index() == 0,
     )
     if population is None:  # process 0 writes the database and reports
-        return {}
+        return Elsewhere()
     return {"out": args.out, "faces": len(population)}
 
 

@@ -1,17 +1,27 @@
-"""``jface wrinkles fit``: fit wrinkle parameters to a measured patch (Weiss et al. 2023, §4.2)."""
+"""``jface wrinkles fit``: fit wrinkle parameters to measured patches (Weiss et al. 2023, §4.2).
+
+One patch with ``--out P.json`` writes ``P.json`` and its figures beside it. Several patches (or
+``--out`` a folder) write ``DIR/STEM.json`` and figures per patch, spread over the processes of
+the run (patch ``i`` on process ``i mod N``), resumably: a patch whose fit exists with the same
+key (the patch's bytes, every setting, the jface version) is kept, any other is fitted. Every
+patch is fitted with the same key, ``jax.random.key(--seed)``.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import jax
 import numpy as np
 from tqdm import tqdm
 
-from jface import plots
-from jface.cli import deprecated_alias
+from jface import io, plots
+from jface._distributed import _Run
+from jface.cli import deprecated_alias, refuse_shared_names
+from jface.cli._processes import Elsewhere, add_process_options, spread
 from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import (
@@ -30,8 +40,19 @@ def register(subparsers) -> None:
         "gradient refinement); write the parameters (JSON), a convergence plot and a "
         "side-by-side shaded PNG",
     )
-    parser.add_argument("patch", help="displacement patch: EXR (one channel), .npy or grey PNG")
-    parser.add_argument("--out", required=True, help="output parameter file (.json)")
+    parser.add_argument(
+        "patches",
+        nargs="+",
+        metavar="PATCH",
+        help="displacement patches: EXR (one channel), .npy or grey PNG",
+    )
+    parser.add_argument(
+        "--out",
+        required=True,
+        help="output parameter file (.json) of one patch, or a folder: STEM.json and figures "
+        "per patch (resumable: a patch fitted before with the same content and settings is "
+        "kept)",
+    )
     parser.add_argument("--channel", help="EXR channel when the file has several")
     parser.add_argument(
         "--patch-size",
@@ -75,6 +96,7 @@ def register(subparsers) -> None:
         "--d-range", type=float, nargs=2, default=(0.02, 0.05), metavar=("LOW", "HIGH"),
         help="search range of the pore distance α_d (default: 0.02 0.05)",
     )  # fmt: skip
+    add_process_options(parser, "fitting a share of the patches")
     parser.set_defaults(
         run=_fit,
         prose="loss {swarm_loss:.4g} (swarm) → {loss:.4g} (refined); {nonfinite} non-finite "
@@ -102,39 +124,203 @@ def _units(patch_size: str | None, shape: tuple[int, int]) -> ParamUnits:
         raise ValueError(f"--patch-size: {err}") from None
 
 
+#: Prose summary of a fit of several patches (or into a folder).
+MANY_PROSE = (
+    "fitted {fitted} patch(es), kept {kept} already done (same content and settings), in {out}/; "
+    "losses {min_loss:.4g} to {max_loss:.4g}"
+)
+_FIGURES = ("_convergence.png", "_target_fit.png")
+
+
 def _fit(args: argparse.Namespace) -> dict:
-    out = check_output(args.out, (".json",))
-    stem = out.with_suffix("")
-    for suffix in ("_convergence.png", "_target_fit.png"):
-        check_output(f"{stem}{suffix}", (".png",))
     for name, option in (("agents", "agents"), ("epochs", "iters"), ("trials", "trials"),
                          ("steps", "steps"), ("d_levels", "d-levels")):  # fmt: skip
         if getattr(args, name) is not None and getattr(args, name) < 1:
             raise ValueError(f"--{option} must be at least 1, got {getattr(args, name)}")
-    patch = read_map(args.patch, args.channel)
-    units = _units(args.patch_size, patch.shape)
     mode = "paper" if args.paper else "fast"
     if args.refine_steps is None:
         args.refine_steps = REFINE_STEPS[mode]
+    for patch in args.patches:
+        if Path(patch).resolve() == Path(args.out).resolve():
+            raise ValueError(f"--out {args.out} is the input patch {patch}; name another output")
+    many = _into_folder(args.patches, args.out)
+    if many:
+        stems = [Path(patch).stem for patch in args.patches]
+        refuse_shared_names(args.patches, [f"{stem}.json" for stem in stems])
+        outs = [Path(args.out) / f"{stem}.json" for stem in stems]
+    else:
+        outs = [check_output(args.out, (".json",))]
+    for out in outs:  # every output name checked (and an input never replaced) before any work
+        check_output(out, (".json",))
+        for suffix in _FIGURES:
+            check_output(f"{out.with_suffix('')}{suffix}", (".png",))
+    if spread(args, _command(args)):
+        return Elsewhere()  # process 0 of the launched processes reports
+    run = _Run() if jax.process_count() > 1 else None
+    try:
+        summaries = _fit_share(run, args, mode, outs, resume=many)
+    except BaseException as err:
+        if run is not None:
+            run.fail(err)  # the others stop at once instead of waiting for this share
+        raise
+    if summaries is None:
+        return Elsewhere()
+    if not many:  # the summary of one patch's fit, as before there were several
+        return {k: v for k, v in summaries[0].items() if k not in ("patch", "kept")}
+    args.prose = MANY_PROSE
+    losses = [s["loss"] for s in summaries]
+    return {
+        "out": args.out,
+        "fitted": sum(not s["kept"] for s in summaries),
+        "kept": sum(s["kept"] for s in summaries),
+        "min_loss": min(losses),
+        "max_loss": max(losses),
+        "patches": summaries,
+    }
+
+
+def _into_folder(patches: list[str], out: str) -> bool:
+    """Whether ``--out`` is a folder of per-patch fits (several patches, an existing folder or a
+    name without a suffix) rather than one patch's parameter file."""
+    path = Path(out)
+    if path.is_dir() or (len(patches) == 1 and not path.suffix):
+        return True
+    if len(patches) == 1:
+        return False
+    if path.exists() or path.suffix.lower() == ".json":
+        raise ValueError(
+            f"--out must be a folder when fitting {len(patches)} patches (STEM.json per patch), "
+            f"got the {'existing file' if path.exists() else 'file name'} {out}"
+        )
+    return True
+
+
+def _command(args: argparse.Namespace) -> list[str]:
+    """The command line of this fit without its process options, for processes it starts."""
+    command = ["wrinkles", "fit", *args.patches, "--out", args.out, "--seed", str(args.seed)]
+    command += ["--agents", str(args.agents), "--iters", str(args.epochs)]
+    command += ["--trials", str(args.trials), "--steps", str(args.steps)]
+    command += ["--refine-steps", str(args.refine_steps), "--d-range", *map(str, args.d_range)]
+    command += ["--paper"] if args.paper else []
+    command += ["--d-levels", str(args.d_levels)] if args.d_levels is not None else []
+    command += ["--channel", args.channel] if args.channel else []
+    command += ["--patch-size", args.patch_size] if args.patch_size else []
+    return command
+
+
+def _settings(args: argparse.Namespace, mode: str) -> dict:
+    """Every setting that changes a fit, for its key."""
+    return {
+        "kind": "WrinkleFit", "seed": args.seed, "agents": args.agents, "epochs": args.epochs,
+        "trials": args.trials, "mode": mode, "steps": args.steps,
+        "refine_steps": args.refine_steps, "d_range": list(args.d_range),
+        "d_levels": args.d_levels, "channel": args.channel, "patch_size": args.patch_size,
+    }  # fmt: skip
+
+
+def _fit_share(run, args, mode: str, outs: list[Path], *, resume: bool) -> list[dict] | None:
+    """Fit this process's share of the patches (patch ``i`` on process ``i mod N``); on process
+    0, the summaries of all patches once every process is done (None on the others)."""
+    settings = _settings(args, mode)
+    keys = [io.content_key([patch], settings) for patch in args.patches]
+    process, n_processes = jax.process_index(), jax.process_count()
+    if run is not None:
+        fingerprint = json.dumps([[str(o) for o in outs], keys], sort_keys=True)
+        run.same_on_all("the command's arguments or its patches' contents", fingerprint)
+    mine = range(process, len(outs), n_processes)
+    if len(outs) > 1:
+        print(f"wrinkles fit: {len(outs)} patches, {len(mine)} on this process", file=sys.stderr)
+    results = {}  # patch index → (its fit document, kept from an earlier run)
+    for i in mine:
+        document = _done(outs[i], args.patches[i], keys[i]) if resume else None
+        results[i] = (document, True)  # fitted before from the same bytes and settings
+        if document is None:
+            document = _fit_one(args, mode, args.patches[i], outs[i], keys[i], process == 0)
+            commit()  # a finished patch survives a crash of a later one
+            results[i] = (document, False)
+    if run is not None:
+        fitted = [i for i, (_, kept) in results.items() if not kept]
+        posted = run.gather("finished", json.dumps(fitted))  # process 0 waits for every share
+        if process != 0:
+            return None
+        fitted_anywhere = {i for share in posted for i in json.loads(share)}
+        for i in set(range(len(outs))) - set(results):
+            document = _done(outs[i], args.patches[i], keys[i])
+            if document is None:
+                raise ValueError(
+                    f"the fit of {args.patches[i]} ({outs[i]}) was removed or replaced while "
+                    "the run went on; run it again"
+                )
+            results[i] = (document, i not in fitted_anywhere)
+    return [_summary(outs[i], *results[i]) for i in range(len(outs))]
+
+
+def _done(out: Path, patch: str, key: str) -> dict | None:
+    """The fit in ``out`` when it is complete (figures too, not interrupted) and was made from
+    this patch's content with these settings (``key``); None when there is none or it is stale.
+
+    Raises:
+        ValueError: ``out`` exists but is not a jface fit of this patch's name.
+    """
+    if not out.exists():
+        return None
+    try:
+        with io.own_outputs():
+            document = io.read_json(out)
+        source = Path(document["provenance"]["patch"]).name
+        fit = document["fit"]
+    except (ValueError, KeyError, TypeError):
+        raise ValueError(
+            f"{out} exists and is not a jface wrinkle fit; remove it or use another --out"
+        ) from None
+    if source != Path(patch).name:
+        raise ValueError(f"{out} holds the fit of {source!r}, not of {patch}; use another --out")
+    stem = out.with_suffix("")
+    complete = all(Path(f"{stem}{suffix}").is_file() for suffix in _FIGURES)
+    if fit.get("key") != key or fit.get("interrupted") or not complete:
+        return None
+    return document
+
+
+def _summary(out: Path, document: dict, kept: bool) -> dict:
+    stem = out.with_suffix("")
+    fit = document["fit"]
+    return {
+        "patch": document["provenance"]["patch"],
+        "out": str(out),
+        "convergence": f"{stem}_convergence.png",
+        "comparison": f"{stem}_target_fit.png",
+        "swarm_loss": fit["swarm_loss"],
+        "loss": fit["loss"],
+        "nonfinite": int(np.sum(fit["nonfinite_losses"])),
+        "kept": kept,
+    }
+
+
+def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bool) -> dict:
+    """Fit one patch and write its parameters and figures; the parameter file's document."""
+    stem = out.with_suffix("")
+    patch = read_map(patch_path, args.channel)
+    units = _units(args.patch_size, patch.shape)
     total = args.trials * args.epochs if args.paper else _halving_epochs(args.trials, args.epochs)
     # measured on 2 CPU cores: 0.15 s per agent and epoch at 256², plus about 2 min of fixed
     # cost (1 min when the compiled programs of an earlier run with this seed are cached)
     minutes = (total * args.agents * 0.15 * patch.size / 256**2 + 120) / 60
     print(
         f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "
-        f"trials on a {patch.shape[1]}×{patch.shape[0]} patch: at most about {minutes:.0f} min "
-        "on 2 CPU cores (fewer --agents, --iters or --trials for a quick look; Ctrl-C keeps the "
-        "best parameters so far)",
+        f"trials on the {patch.shape[1]}×{patch.shape[0]} patch {patch_path}: at most about "
+        f"{minutes:.0f} min on 2 CPU cores (fewer --agents, --iters or --trials for a quick "
+        "look; Ctrl-C keeps the best parameters so far)",
         file=sys.stderr,
     )
-    with tqdm(total=total, desc="particle swarm", unit="epoch") as bar:
+    with tqdm(total=total, desc="particle swarm", unit="epoch", disable=not progress) as bar:
 
-        def progress(trial, epoch, best):
+        def report(trial, epoch, best):
             bar.update(1)
             bar.set_postfix(trial=trial + 1, epoch=epoch, best=f"{best:.4g}", refresh=False)
 
         fit = fit_wrinkles(
-            jax.random.key(args.seed),
+            jax.random.key(args.seed),  # the same key for every patch
             patch,
             d_range=tuple(args.d_range),
             n_agents=args.agents,
@@ -144,10 +330,10 @@ def _fit(args: argparse.Namespace) -> dict:
             refine_steps=args.refine_steps,
             d_levels=None if args.d_levels is None else max(2, args.d_levels),
             mode=mode,
-            progress=progress,
+            progress=report,
         )
     meta = provenance(
-        seed=args.seed, patch=str(args.patch), agents=args.agents, epochs=args.epochs,
+        seed=args.seed, patch=str(patch_path), agents=args.agents, epochs=args.epochs,
         trials=args.trials, mode=mode, steps=args.steps, refine_steps=args.refine_steps,
         d_range=list(args.d_range), d_levels=args.d_levels,
     )  # fmt: skip
@@ -162,6 +348,7 @@ def _fit(args: argparse.Namespace) -> dict:
             "mode": mode,
             "epochs_run": list(fit.epochs_run),
             "interrupted": fit.interrupted,
+            "key": key,
         },
         "provenance": meta,
     }
@@ -182,20 +369,12 @@ def _fit(args: argparse.Namespace) -> dict:
         units=[None, "displacement (map units)"],
     )
     write_figure(f"{stem}_target_fit.png", pair, metadata=meta)
-    bad = int(np.sum(fit.swarm.n_nonfinite))
     if fit.interrupted:
         commit()  # keep the best parameters found so far, then exit as interrupted (130)
         print(f"wrinkles fit: interrupted; wrote the best parameters so far to {out}",
               file=sys.stderr)  # fmt: skip
         raise KeyboardInterrupt
-    return {
-        "out": str(out),
-        "convergence": f"{stem}_convergence.png",
-        "comparison": f"{stem}_target_fit.png",
-        "swarm_loss": float(fit.swarm_loss),
-        "loss": float(fit.loss),
-        "nonfinite": bad,
-    }
+    return document
 
 
 def _halving_epochs(trials: int, epochs: int) -> int:

@@ -6,6 +6,7 @@
 the paper's baselines (§4).
 """
 
+from jface._distributed import deterministic_cpu_flags, join_processes, run_local_processes
 from jface.detail._analysis import (
     PCA,
     CrossValidation,
@@ -29,13 +30,7 @@ from jface.detail._applications import (
     sharpen,
     transfer_detail,
 )
-from jface.detail._database import (
-    analyze_batch,
-    build_database,
-    deterministic_cpu_flags,
-    join_processes,
-    run_local_processes,
-)
+from jface.detail._database import analyze_batch, build_database
 from jface.detail._meshes import (
     Face,
     FaceInterpolation,
