@@ -60,7 +60,6 @@ SLOW = {
     "test_cli_content.py": None,
     "test_wrinkles_cli.py": None,
     "test_readme.py": None,  # every Python block and command-table row of the README
-    "test_distributed.py": None,  # starts jax.distributed processes
     # the rest: the longest tests of the fast tier as measured (3–33 s each on two cores)
     "test_detail.py": {
         "test_fig5_resynthesis_converges_on_real_data",
