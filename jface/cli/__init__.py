@@ -26,7 +26,6 @@ import argparse
 import contextlib
 import importlib
 import json
-import os
 import signal
 import sys
 import threading
@@ -35,6 +34,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from jface import __version__, io
+from jface._compilation import keep_compiled_programs
 
 #: Modules contributing sub-commands, in the order their demo steps run.
 COMMAND_MODULES = (
@@ -225,7 +225,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
     name = args.page_title  # the sub-command, e.g. "jface wrinkles fit", names its messages
-    _keep_compiled_programs()
+    keep_compiled_programs()
     if getattr(args, "deprecated", None):
         old, new = args.deprecated
         print(f"jface: {old} is deprecated; use {new}", file=sys.stderr)
@@ -247,26 +247,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not isinstance(summary, Elsewhere):  # else process 0 of a distributed run reports
         _print_summary(summary or {}, getattr(args, "prose", None), as_json=args.json)
     return 0
-
-
-def _keep_compiled_programs() -> None:
-    """Keep XLA's compiled programs on disk between runs (JAX's persistent compilation cache),
-    so that a second fit, build or synthesis of the same sizes starts without compiling.
-
-    ``JFACE_CACHE_DIR`` names the folder (default ``jface/xla`` under ``XDG_CACHE_HOME``, or
-    ``~/.cache``); ``JFACE_CACHE_DIR=off`` turns it off; a folder given to JAX itself
-    (``JAX_COMPILATION_CACHE_DIR``) is kept. Only programs that took over a second to compile
-    are stored.
-    """
-    import jax
-
-    where = os.environ.get("JFACE_CACHE_DIR", "")
-    if where == "off" or jax.config.jax_compilation_cache_dir:
-        return
-    if not where:
-        where = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "jface" / "xla"
-    jax.config.update("jax_compilation_cache_dir", str(where))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 def _print_summary(summary: dict, prose: str | None, *, as_json: bool) -> None:
