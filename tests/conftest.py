@@ -2,6 +2,9 @@
 
 import functools
 import os
+import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -18,6 +21,29 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 os.environ.setdefault("JFACE_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".jax-cache"))
 if keep_compiled_programs():
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)  # the tests' are small
+
+
+def free_port() -> int:
+    """A TCP port on localhost that is free now (for a test's coordinator)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def run_with_process_counts(argv: list[str], counts: tuple[str, str]) -> list[tuple[int, str]]:
+    """Run ``jface ARGV`` as processes 0 and 1 of a distributed run that were told the process
+    counts ``counts``; their exit statuses and stderr."""
+    entry = "import sys; from jface.cli import main; sys.exit(main())"
+    workers = [
+        subprocess.Popen(
+            [sys.executable, "-c", entry, *argv, "--process-id", str(i), "--num-processes", n],
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i, n in enumerate(counts)
+    ]
+    errors = [w.communicate(timeout=60)[1] for w in workers]
+    return [(w.returncode, err) for w, err in zip(workers, errors, strict=True)]
 
 
 @pytest.fixture(scope="session")

@@ -3,7 +3,6 @@ resumable after a killed process, and clear errors for bad set-ups."""
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -11,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import free_port, run_with_process_counts
 
 from jface import detail, io
 from jface.cli import main
@@ -64,12 +64,6 @@ def one_process(maps, tmp_path_factory):
     done = jface("db", "build", *maps, "--out", str(out), *LAYOUT)
     assert done.returncode == 0, done.stderr
     return out
-
-
-def free_port():
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def test_builds_are_byte_identical(maps, one_process, tmp_path):
@@ -156,18 +150,8 @@ def test_mismatched_process_counts_are_refused(maps, tmp_path):
     port = free_port()
     argv = ["db", "build", *maps[:4], "--out", str(tmp_path / "db.npz"), *LAYOUT]
     argv += ["--coordinator", f"127.0.0.1:{port}", "--timeout", "10"]
-    entry = "import sys; from jface.cli import main; sys.exit(main())"
-    workers = [
-        subprocess.Popen(
-            [sys.executable, "-c", entry, *argv, "--process-id", str(i), "--num-processes", n],
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for i, n in ((0, "2"), (1, "3"))
-    ]
-    for worker in workers:
-        _, err = worker.communicate(timeout=30)
-        assert worker.returncode == 2
+    for status, err in run_with_process_counts(argv, ("2", "3")):
+        assert status == 2
         assert "different process counts: ['2', '3']" in err
     assert not (tmp_path / "db.npz").exists()
 

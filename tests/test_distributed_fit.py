@@ -6,7 +6,6 @@ the time is compiling, shared through the persistent compilation cache of the co
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -15,6 +14,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from conftest import free_port, run_with_process_counts
 
 from jface import io
 from jface._distributed import deterministic_cpu_flags
@@ -69,12 +69,6 @@ def jface(*argv, timeout=400):
         text=True,
         timeout=timeout,
     )
-
-
-def free_port():
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def without_provenance(path):
@@ -217,17 +211,7 @@ def test_bad_process_options_are_refused(patches, tmp_path, capsys):
 def test_mismatched_process_counts_are_refused(patches, tmp_path):
     argv = ["wrinkles", "fit", *patches, "--out", str(tmp_path / "fits"), *FIT]
     argv += ["--coordinator", f"127.0.0.1:{free_port()}", "--timeout", "10"]
-    entry = "import sys; from jface.cli import main; sys.exit(main())"
-    workers = [
-        subprocess.Popen(
-            [sys.executable, "-c", entry, *argv, "--process-id", str(i), "--num-processes", n],
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for i, n in ((0, "2"), (1, "3"))
-    ]
-    for worker in workers:
-        _, err = worker.communicate(timeout=60)
-        assert worker.returncode == 2
+    for status, err in run_with_process_counts(argv, ("2", "3")):
+        assert status == 2
         assert "jface wrinkles fit: error: the processes were given different process counts" in err
     assert not (tmp_path / "fits").exists()
