@@ -30,13 +30,28 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+#: ``python -c JFACE_ENTRY ARGV`` runs ``jface ARGV`` in a process of its own
+JFACE_ENTRY = "import sys; from jface.cli import main; sys.exit(main())"
+
+
+def run_jface(*argv: str, env: dict | None = None, timeout: float = 60):
+    """``jface ARGV`` in a process of its own, with ``env`` added to this one's environment."""
+    return subprocess.run(
+        [sys.executable, "-c", JFACE_ENTRY, *argv],
+        env=dict(os.environ, **(env or {})),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
 def run_with_process_counts(argv: list[str], counts: tuple[str, str]) -> list[tuple[int, str]]:
     """Run ``jface ARGV`` as processes 0 and 1 of a distributed run that were told the process
     counts ``counts``; their exit statuses and stderr."""
-    entry = "import sys; from jface.cli import main; sys.exit(main())"
+    command = [sys.executable, "-c", JFACE_ENTRY, *argv]
     workers = [
         subprocess.Popen(
-            [sys.executable, "-c", entry, *argv, "--process-id", str(i), "--num-processes", n],
+            [*command, "--process-id", str(i), "--num-processes", n],
             stderr=subprocess.PIPE,
             text=True,
         )

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import free_port, run_with_process_counts
+from conftest import run_jface as jface
 
 from jface import detail, io
 from jface.cli import main
@@ -45,17 +46,6 @@ def maps(tmp_path_factory, gravel, brick):
         crop = source[y * 64 : y * 64 + 64, x * 64 : x * 64 + 64].astype(np.float32)
         paths.append(str(io.write_exr(folder / f"m{i:02d}.exr", crop)))
     return paths
-
-
-def jface(*argv, env=None, timeout=60):
-    env = dict(os.environ, **(env or {}))
-    return subprocess.run(
-        [sys.executable, "-c", "import sys; from jface.cli import main; sys.exit(main())", *argv],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
 
 
 @pytest.fixture(scope="module")

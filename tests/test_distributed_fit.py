@@ -14,7 +14,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from conftest import free_port, run_with_process_counts
+from conftest import free_port, run_jface, run_with_process_counts
 
 from jface import io
 from jface._distributed import deterministic_cpu_flags
@@ -61,14 +61,7 @@ def patches(gravel, tmp_path_factory):
 
 def jface(*argv, timeout=400):
     """``jface ARGV`` in a process of its own with the deterministic CPU flags."""
-    env = dict(os.environ, XLA_FLAGS=FLAGS)
-    return subprocess.run(
-        [sys.executable, "-c", "import sys; from jface.cli import main; sys.exit(main())", *argv],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    return run_jface(*argv, env={"XLA_FLAGS": FLAGS}, timeout=timeout)
 
 
 def without_provenance(path):
