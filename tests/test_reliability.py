@@ -163,7 +163,7 @@ def test_every_command_refuses_its_input_as_output(files, face_folder, tmp_path,
             ["wrinkles", "extract", f["m"], "--out", d / "e.json", "--pores-out", d / "e.json"],
             "one file",
         ),
-        (["wrinkles", "fit", f["m"], "--out", f["m"]], "must end in .json"),
+        (["wrinkles", "fit", f["m"], "--out", f["m"]], "is the input patch"),
         (["wrinkles", "fit", d / "m_convergence.png", "--out", d / "m.json"], "m_convergence.png"),
     ]
     for argv, fragment in cases:

@@ -107,6 +107,10 @@ def pca_init(
     y = r @ basis
     evals, evecs = jnp.linalg.eigh(y.T @ y)  # ascending
     v = basis @ evecs[:, ::-1]
+    # an eigenvector's sign is arbitrary and differs between jit and eager: make each direction's
+    # largest entry positive, so that the same data give the same factors however they are run
+    largest = v[jnp.argmax(jnp.abs(v), axis=0), jnp.arange(v.shape[1])]
+    v = v * jnp.where(largest < 0, -1.0, 1.0).astype(dtype)
     s = jnp.sqrt(jnp.maximum(evals[::-1], 0.0))
     lam = s**2 / n_eff
     s2 = jnp.sum(r * r, axis=0) / n_eff
