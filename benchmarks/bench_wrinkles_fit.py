@@ -9,17 +9,22 @@ gives a mode's wall time, its swarm and refined loss, the epochs each trial ran 
 synthetic targets, the recovered α_deposit and α_θ of level 1 against the truth; the paper
 mode's line adds the fast/paper ratios of time and loss when both ran on the target.
 
+``--save DIR`` keeps each target (``<target>.npy``) and each fit (``<target>-<mode>-<seed>.npz``:
+the fitted map, the swarm's history, the fitted levels as JSON) for
+``examples/wrinkles_fit_modes.py``, which draws them side by side.
+
 ``--stages`` first prints the cost of one swarm evaluation split into simulation, drawing and
 texture loss, and the layout time (pores and graphs of the α_d grid).
 
 Run: ``python benchmarks/bench_wrinkles_fit.py [--targets known-1 brick] [--modes fast paper]
-[--agents 50] [--epochs 100] [--trials 3]``.
+[--agents 50] [--epochs 100] [--trials 3] [--save DIR]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -30,7 +35,7 @@ from skimage import data
 
 from jface import detail
 from jface.optim import texture_stats
-from jface.wrinkles import WrinkleParams, fit_wrinkles
+from jface.wrinkles import WrinkleParams, fit_wrinkles, params_to_json
 from jface.wrinkles._fit import (
     D_RANGE,
     PAPER_NAMES,
@@ -124,9 +129,14 @@ def main() -> None:
     parser.add_argument("--d-levels", type=int, help="default: the mode's (16 fast, 32 paper)")
     parser.add_argument("--refine-steps", type=int, default=30)
     parser.add_argument("--stages", action="store_true", help="the cost split of one evaluation")
+    parser.add_argument("--save", type=Path, help="folder for the targets and the fits")
     args = parser.parse_args()
+    if args.save:
+        args.save.mkdir(parents=True, exist_ok=True)
     for name in args.targets:
         target = make_target(name, args.size, args.steps)
+        if args.save:
+            np.save(args.save / f"{name}.npy", target)
         if args.stages:
             start = time.perf_counter()
             levels = args.d_levels or 32
@@ -147,6 +157,12 @@ def main() -> None:
                 jax.block_until_ready(fit.loss)
                 elapsed = time.perf_counter() - start
                 done[mode] = (elapsed, float(fit.loss))
+                if args.save:
+                    np.savez(
+                        args.save / f"{name}-{mode}-{seed}.npz", fitted=np.asarray(fit.fitted),
+                        history=np.asarray(fit.swarm.history), seconds=elapsed,
+                        loss=float(fit.loss), levels=params_to_json(fit.levels, "uv"),
+                    )  # fmt: skip
                 extra = {}
                 if name.startswith("known-"):
                     extra = {"deposit": round(float(fit.levels[0].deposit), 3),

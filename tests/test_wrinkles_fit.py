@@ -13,7 +13,7 @@ import pytest
 from jface.cli import main
 from jface.io import write_exr
 from jface.optim import texture_stats
-from jface.wrinkles import WrinkleParams, fit_wrinkles
+from jface.wrinkles import WrinkleParams, _fit, fit_wrinkles
 from jface.wrinkles._fit import _draw, _layout, _levels_from, _refine, _simulate, _SwarmLoss
 
 D_RANGE = (0.04, 0.05)
@@ -98,10 +98,14 @@ def test_bad_input(patch, kwargs, error, match, unchecked):
         fit_wrinkles(jax.random.key(0), patch, **kwargs)
 
 
-def test_fast_mode_is_deterministic_and_halves_the_trials(target):
+def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
+    built = []
+    monkeypatch.setattr(_fit, "_LAYOUTS", {})
+    monkeypatch.setattr(_fit, "_layout", lambda *a: built.append(a) or _layout(*a))
     kwargs = dict(SMALL, n_trials=3, names=NAMES, base=TRUE, refine_steps=0)
     runs = [fit_wrinkles(jax.random.key(0), target, **kwargs) for _ in range(2)]
     assert np.array_equal(runs[0].swarm.params, runs[1].swarm.params)
+    assert len(built) == 1  # the second fit (same key, size and settings) kept the layout
     # rungs of n_epochs // 8 = 1 epoch: three trials run one, the better two another, the best
     # goes on to n_epochs = 10 unless it stalls (10 epochs without a 0.1 % gain)
     epochs = sorted(runs[0].epochs_run)

@@ -445,8 +445,9 @@ def _render_tiles(
                 return c + 1, body(acc, c)[0]
 
             _, acc = lax.while_loop(lambda st: st[0] * capacity < count, step, (jnp.int32(0), init))
-        else:  # a static number of passes keeps the map reverse-differentiable
-            acc, _ = lax.scan(body, init, jnp.arange(passes, dtype=jnp.int32))
+        else:  # a static number of passes keeps the map reverse-differentiable; the gradient
+            # recomputes each pass's fragments rather than keeping them all (memory-bound)
+            acc, _ = lax.scan(jax.checkpoint(body), init, jnp.arange(passes, dtype=jnp.int32))
         return _blend(acc, beta, n_hat).reshape(tile, tile)
 
     batch = max(1, (1 << 20) // (tile * tile * capacity))

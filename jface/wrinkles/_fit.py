@@ -9,7 +9,9 @@ random numbers), so they are built once per fit on a grid of ``d_levels`` values
 to the slots the data use, and each agent simulates on the nearest (α_d is effectively quantised
 to that grid; the reported α_d is the grid value). Each trial evaluates every agent with the same
 simulation key, so the loss is a deterministic function of the parameters. The map is drawn at
-the patch size rounded up to whole 32-pixel tiles (a periodic map needs whole tiles) and cropped.
+the patch size rounded up to whole 8-pixel tiles (a periodic map needs whole tiles) and cropped.
+The layout of a (key, size, settings) is kept for the next fit in the process (the command line
+fits every patch with the same key).
 
 Beyond the paper, the continuous drawing parameters of the best agent are then refined by
 gradient (optimistix BFGS) through the differentiable drawing with the simulation result held
@@ -126,6 +128,24 @@ class _Layout(eqx.Module):
 _TILE, _CAPACITY = 8, 16
 #: drawing fields at their widest for sizing the draws (agents beyond get a NaN loss)
 _WIDE = {"wrinkle_width": 0.6, "pore_width": 0.3, "blend": 0.5, "skew": 0.5, "sperturb": 1.0}
+
+
+#: layouts of the latest fits in this process, by key and settings (a few MB each)
+_LAYOUTS: dict[tuple, _Layout] = {}
+_KEPT_LAYOUTS = 4
+
+
+def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
+    """:func:`_layout`, built once per key and settings in this process (patches of one size
+    fitted with one key share their pores and graphs)."""
+    bits = np.asarray(jax.random.key_data(key)).tobytes()
+    name = (str(jax.random.key_impl(key)), bits, tuple(size), tuple(map(float, d_range)), n_steps,
+            d_levels)  # fmt: skip
+    if name not in _LAYOUTS:
+        while len(_LAYOUTS) >= _KEPT_LAYOUTS:
+            del _LAYOUTS[next(iter(_LAYOUTS))]  # the oldest
+        _LAYOUTS[name] = _layout(key, size, d_range, n_steps, d_levels)
+    return _LAYOUTS[name]
 
 
 def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
@@ -488,7 +508,7 @@ def fit_wrinkles(
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     settings = swarm_settings(_checks.integer(n_agents, "n_agents", low=3), batched=True)
     k_layout, k_sim, k_swarm = jax.random.split(key, 3)
-    layout = _layout(k_layout, target.shape, d_range, n_steps, d_levels)
+    layout = _kept_layout(k_layout, target.shape, d_range, n_steps, d_levels)
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
     # one swarm per trial, each with its own simulation key; all share one compiled loss
