@@ -61,7 +61,7 @@ def stages(target, layout, agents: int) -> None:
     key, stats = jax.random.key(5), texture_stats(target)
     sim = jax.jit(jax.vmap(lambda x: _simulate(key, _levels_from(x, PAPER_NAMES, base), layout)))
     # the agents draw one after the other, each with the passes its tiles need (as in the fit)
-    draw = jax.jit(lambda s, lv: jax.lax.map(lambda a: _draw_checked(key, *a, layout), (s, lv)))
+    draw = jax.jit(lambda s, lv: jax.lax.map(lambda a: _draw_checked(key, *a, layout)[:2], (s, lv)))
     loss = jax.jit(jax.vmap(lambda image: _loss(image, stats)))
     sims, levels = jax.block_until_ready(sim(x))
     images, bad = jax.block_until_ready(draw(sims, levels))

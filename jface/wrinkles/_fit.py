@@ -182,14 +182,15 @@ def _pores(keys, d, ranges, caps=(None, None)):
 
 @functools.partial(jax.jit, static_argnums=(2, 3, 4))
 def _graphs(keys, d_values, ranges, caps, specs) -> tuple[PoreGraph, PoreGraph]:
-    """Both levels' graphs for every α_d, one after the other (one compile for the whole grid;
-    a batch would hold every grid value's crossing search in memory at once)."""
+    """Both levels' graphs for every α_d (one compile for the whole grid): the pores sampled
+    as one batch (the sampling is a long loop of small steps), the graphs built one after the
+    other (a batch would hold every grid value's crossing search in memory at once)."""
+    pores = jax.vmap(lambda d: _pores(keys, d, ranges, caps))(d_values)
 
-    def one(d):
-        levels = _pores(keys, d, ranges, caps)
+    def one(levels):
         return tuple(build_graph(p, spec) for p, spec in zip(levels, specs, strict=True))
 
-    return jax.lax.map(one, d_values)
+    return jax.lax.map(one, pores)
 
 
 def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int, int]:
@@ -243,8 +244,9 @@ def _draw(key, sims, levels, layout: _Layout) -> Float[Array, "H W"]:
 
 def _draw_checked(
     key, sims, levels, layout: _Layout, passes=(None, None)
-) -> tuple[Float[Array, "H W"], Array]:
-    """Like :func:`_draw`, plus whether some level was too large for the static draw sizes.
+) -> tuple[Float[Array, "H W"], Array, tuple[Array, Array]]:
+    """Like :func:`_draw`, plus whether some level was too large for the static draw sizes and
+    each level's fullest tile (primitives).
 
     Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into huge pores) can make more
     (primitive, tile) pairs than the bins hold, which would leave the map incomplete. Such a
@@ -253,16 +255,17 @@ def _draw_checked(
     swarm: fast, no gradients); static passes keep the map differentiable (the refinement), and
     a tile holding more is flagged too.
     """
-    out, bad = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool)
+    out, bad, fullest = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool), []
     for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout)):
         opts = _options(i, layout, passes[i])
+        fullest.append(jnp.max(bins.count))
         over = bins.overflow
         if passes[i] is not None:
-            over = over | (jnp.max(bins.count) > passes[i] * _CAPACITY)
+            over = over | (fullest[i] > passes[i] * _CAPACITY)
         bins = bins._replace(count=jnp.where(over, 0, bins.count))  # draw no primitive then
         out = out + render(k_noise, prims, bins, levels[i], layout.shape, opts, True)
         bad = bad | over
-    return out[: layout.size[0], : layout.size[1]], bad
+    return out[: layout.size[0], : layout.size[1]], bad, tuple(fullest)
 
 
 def _options(level: int, layout: _Layout, passes=None) -> DrawOptions:
@@ -359,7 +362,7 @@ class _SwarmLoss(eqx.Module):
             return _simulate(self.key, _levels_from(x, self.names, self.base), self.layout)
 
         def one(agent):
-            image, bad = _draw_checked(self.key, *agent, self.layout)
+            image, bad, _ = _draw_checked(self.key, *agent, self.layout)
             return jnp.where(bad, jnp.nan, _loss(image, self.target))
 
         return jax.lax.map(one, jax.vmap(simulate)(xs))
@@ -648,8 +651,8 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
 def _refine_start(sim_key, levels, layout: _Layout):
     """The best agent's simulation, its fullest tile per level and its map (one compile)."""
     sims, levels = _simulate(sim_key, levels, layout)
-    fullest = tuple(jnp.max(bins.count) for _, _, bins in _binned(sim_key, sims, levels, layout))
-    return sims, levels, fullest, _draw(sim_key, sims, levels, layout)
+    image, _, fullest = _draw_checked(sim_key, sims, levels, layout)
+    return sims, levels, fullest, image
 
 
 @eqx.filter_jit
@@ -664,9 +667,12 @@ def _refine_solve(sim_key, sims, levels, layout: _Layout, target_stats, fields, 
             changes[lv][f] = lo + (hi - lo) * jax.nn.sigmoid(z[i])
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
 
+    def drawn(z):
+        image, bad, _ = _draw_checked(sim_key, sims, unpack(z), layout, passes)
+        return image, jnp.where(bad, jnp.inf, _loss(image, target_stats))
+
     def loss(z, _):
-        image, bad = _draw_checked(sim_key, sims, unpack(z), layout, passes)
-        return jnp.where(bad, jnp.inf, _loss(image, target_stats))  # the line search backs off
+        return drawn(z)[1]  # inf where undrawable: the line search backs off
 
     def logit(lv, f):
         lo, hi = PARAMETER_RANGES[f]
@@ -676,6 +682,5 @@ def _refine_solve(sim_key, sims, levels, layout: _Layout, target_stats, fields, 
     z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
     solver = optx.BFGS(rtol=1e-4, atol=1e-6)
     sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
-    best = unpack(sol.value)
-    image, _ = _draw_checked(sim_key, sims, best, layout, passes)
-    return best, loss(sol.value, None), image
+    image, value = drawn(sol.value)
+    return unpack(sol.value), value, image
