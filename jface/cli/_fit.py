@@ -303,9 +303,9 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     patch = read_map(patch_path, args.channel)
     units = _units(args.patch_size, patch.shape)
     total = args.trials * args.epochs if args.paper else _halving_epochs(args.trials, args.epochs)
-    # measured on 2 CPU cores: 0.15 s per agent and epoch at 256², plus about 2 min of fixed
+    # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², plus about 2 min of fixed
     # cost (1 min when the compiled programs of an earlier run with this seed are cached)
-    minutes = (total * args.agents * 0.15 * patch.size / 256**2 + 120) / 60
+    minutes = (total * args.agents * 0.16 * patch.size / 256**2 + 120) / 60
     print(
         f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "
         f"trials on the {patch.shape[1]}×{patch.shape[0]} patch {patch_path}: at most about "
