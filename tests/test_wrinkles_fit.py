@@ -158,3 +158,23 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert main(["fit", str(path), "--out", str(tmp_path / "p.json")]) == 2
     assert "constant" in capsys.readouterr().err
     assert main(["fit", str(path), "--out", str(tmp_path / "p.txt")]) == 2
+
+
+def test_layout_programs_are_cacheable_and_report_their_errors():
+    """The α_d grid's program holds no host callback (JAX's persistent compilation cache keeps
+    no program that has one), so its sampling and graph errors come back as flags, which the
+    fit raises as clear errors."""
+    keys = tuple(jax.random.split(jax.random.key(0)))
+    ranges = ((0.04, 0.05), (0.02, 0.025))
+    dense, flags = _fit._pores(keys, 0.04, ranges)
+    assert not any(bool(f) for f in flags.values())
+    caps = (dense[0].capacity, dense[1].capacity)
+    specs = tuple(_fit.covering_spec((p,), r) for p, r in zip(dense, ranges, strict=True))
+    args = (keys, jnp.asarray([0.04, 0.05]), ranges, caps, specs)
+    jaxpr = str(jax.make_jaxpr(_fit._graphs, static_argnums=(2, 3, 4))(*args))
+    assert "callback" not in jaxpr
+    _, pore_flags, graph_flags = _fit._graphs(*args)
+    assert not any(np.any(np.asarray(f)) for f in jax.tree.leaves((pore_flags, graph_flags)))
+    _, flags = _fit._pores(keys, 0.04, ranges, (16, caps[1]))  # too few slots
+    with pytest.raises(ValueError, match="more pores than capacity"):
+        _fit._checked(None, flags, _fit.SAMPLING_ERRORS)

@@ -72,6 +72,7 @@ def texture_stats(
     return _stats(image, n_scales, n_orientations, boundary)
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
 def _stats(image: Array, n_scales: int, n_orientations: int, boundary: str) -> TextureStats:
     image = (image - jnp.mean(image)) / jnp.sqrt(jnp.var(image) + _VAR_EPS)
     pyr = pyramid.build(image, n_scales, n_orientations, boundary=boundary)

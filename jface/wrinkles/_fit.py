@@ -45,9 +45,16 @@ from jface.wrinkles._drawing import (
     primitives,
     render,
 )
-from jface.wrinkles._graph import PoreGraph, _round_up, build_graph, covering_spec, trim_batch
+from jface.wrinkles._graph import (
+    PoreGraph,
+    _round_up,
+    built,
+    covering_spec,
+    graph_errors,
+    trim_batch,
+)
 from jface.wrinkles._params import PARAMETER_RANGES, WrinkleParams
-from jface.wrinkles._sampling import sample_pores
+from jface.wrinkles._sampling import SAMPLING_ERRORS, default_capacity, sampled
 from jface.wrinkles._simulation import N_SAMPLES, simulate
 
 #: Per-level parameters the paper fits (§4.2.2), besides α_d and one noise level.
@@ -153,12 +160,16 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     lo, hi = d_range
     ranges = ((lo, hi), (lo / 2, hi / 2))
     keys = tuple(jax.random.split(key))
-    dense = _pores(keys, lo, ranges)
+    dense = _checked(*_pores(keys, lo, ranges), SAMPLING_ERRORS)
     caps = (dense[0].capacity, dense[1].capacity)
-    sparse = _pores(keys, hi, ranges, caps)
+    sparse = _checked(*_pores(keys, hi, ranges, caps), SAMPLING_ERRORS)
     specs = tuple(covering_spec((dense[i], sparse[i]), ranges[i]) for i in range(2))
     d_values = np.linspace(lo, hi, d_levels, dtype=np.float32)
-    graphs = tuple(trim_batch(g) for g in _graphs(keys, jnp.asarray(d_values), ranges, caps, specs))
+    graphs, pore_flags, graph_flags = _graphs(keys, jnp.asarray(d_values), ranges, caps, specs)
+    _checked(None, pore_flags, SAMPLING_ERRORS)
+    for flags, spec in zip(graph_flags, specs, strict=True):
+        _checked(None, flags, graph_errors(spec))
+    graphs = tuple(trim_batch(g) for g in graphs)
     # the simulation's N: a fixed setting of the fit, about twice the densest graph's edges, so
     # that the fit's 50 steps carve the patch (N = |E| would need ~5x the steps; the paper's
     # 50,000 on a patch of a few thousand edges decays by a quarter per step)
@@ -172,25 +183,40 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
 
 
 def _pores(keys, d, ranges, caps=(None, None)):
-    """The two levels' pores of α_d (level 2 at half the distance, starting from level 1's)."""
-    p1 = sample_pores(keys[0], d, capacity=caps[0], radius_range=ranges[0], periodic=True)
-    p2 = sample_pores(
-        keys[1], d / 2, capacity=caps[1], initial=p1, radius_range=ranges[1], periodic=True
-    )
-    return p1, p2
+    """The two levels' pores of α_d (level 2 at half the distance, starting from level 1's), and
+    the sampling's error flags of either level."""
+    if caps[0] is None:  # packing bounds, as sample_pores sizes them
+        first = default_capacity(d)
+        caps = (first, default_capacity(d / 2, initial=first))
+    d = jnp.asarray(d, jnp.float32)
+    p1, f1, _ = sampled(keys[0], d, None, None, caps[0], ranges[0], True)
+    p2, f2, _ = sampled(keys[1], d / 2, None, p1, caps[1], ranges[1], True)
+    return (p1, p2), {name: f1[name] | f2[name] for name in f1}
+
+
+def _checked(value, flags: dict, messages: dict):
+    """``value``, unless one of the (concrete) error ``flags`` of a batch is set."""
+    for name, flag in flags.items():
+        if bool(np.any(np.asarray(flag))):
+            raise ValueError(f"the fit's pores and graphs: {messages[name]}")
+    return value
 
 
 @functools.partial(jax.jit, static_argnums=(2, 3, 4))
-def _graphs(keys, d_values, ranges, caps, specs) -> tuple[PoreGraph, PoreGraph]:
-    """Both levels' graphs for every α_d (one compile for the whole grid): the pores sampled
-    as one batch (the sampling is a long loop of small steps), the graphs built one after the
+def _graphs(keys, d_values, ranges, caps, specs):
+    """Both levels' graphs for every α_d (one compile for the whole grid), and the error flags
+    of the pores and of the graphs per α_d (returned: a program that raises holds host
+    callbacks, which the persistent compilation cache does not keep). The pores are sampled as
+    one batch (the sampling is a long loop of small steps), the graphs built one after the
     other (a batch would hold every grid value's crossing search in memory at once)."""
-    pores = jax.vmap(lambda d: _pores(keys, d, ranges, caps))(d_values)
+    pores, pore_flags = jax.vmap(lambda d: _pores(keys, d, ranges, caps))(d_values)
 
     def one(levels):
-        return tuple(build_graph(p, spec) for p, spec in zip(levels, specs, strict=True))
+        out = [built(p, spec)[:2] for p, spec in zip(levels, specs, strict=True)]
+        return tuple(zip(*out, strict=True))  # (graphs, flags), a pair per level
 
-    return jax.lax.map(one, pores)
+    graphs, graph_flags = jax.lax.map(one, pores)
+    return graphs, pore_flags, graph_flags
 
 
 def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int, int]:

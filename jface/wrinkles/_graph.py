@@ -448,6 +448,54 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
         spec = graph_spec(pores, k=k)
     if not isinstance(spec, GraphSpec):
         raise TypeError(f"spec must be a GraphSpec, got {_checks.describe(spec)}")
+    graph, flags, max_cross = built(pores, spec, auto)
+    messages = graph_errors(spec)
+    if not any(_checks.is_traced(f) for f in flags.values()):
+        for name, flag in flags.items():
+            if bool(flag):
+                detail = f" (found {int(max_cross)})" if name == "crossings" else ""
+                raise ValueError(messages[name] + detail)
+    else:
+        positions = graph.positions
+        for name, flag in flags.items():
+            positions = eqx.error_if(positions, flag, messages[name])
+        graph = eqx.tree_at(lambda g: g.positions, graph, positions)
+    if auto and not _checks.is_traced(graph.half_mask):
+        # default sizes: trim the slots to what this graph uses
+        used_deg = max(1, int(jnp.max(jnp.sum(graph.half_mask, axis=-1))))
+        used_cross = max(1, int(max_cross))
+        order = jnp.argsort(~graph.half_mask, axis=-1, stable=True)[:, :used_deg]
+        halves = ("half_target", "half_edge", "half_angle", "half_length", "half_mask")
+        graph = eqx.tree_at(
+            lambda g: [getattr(g, n) for n in halves] + [g.crossings, g.crossing_mask],
+            graph,
+            [jnp.take_along_axis(getattr(graph, n), order, axis=-1) for n in halves]
+            + [graph.crossings[:, :used_cross], graph.crossing_mask[:, :used_cross]],
+        )
+    return graph
+
+
+def graph_errors(spec: GraphSpec) -> dict[str, str]:
+    """What each flag of :func:`built` means."""
+    return {
+        "cell": "a kNN grid cell holds more pores than knn_cell_capacity",
+        "inexact": "the kNN reach is too small for an exact k-nearest-neighbour answer "
+        "(raise GraphSpec.knn_reach)",
+        "degree": f"a pore has more than max_degree={spec.max_degree} half-edges "
+        "(raise GraphSpec.max_degree)",
+        "edge_cell": "an edge-midpoint grid cell holds more edges than edge_cell_capacity",
+        "sparse": "the pores are too sparse for a periodic graph (edges longer than 0.4)",
+        "crossings": f"an edge is crossed by more than max_crossings={spec.max_crossings} edges "
+        "(raise GraphSpec.max_crossings)",
+    }
+
+
+def built(pores: Pores, spec: GraphSpec, auto: bool = False):
+    """:func:`build_graph` of checked arguments, untrimmed, with its error flags
+    (:func:`graph_errors`) returned rather than raised (a program that raises through
+    ``equinox.error_if`` holds host callbacks, which JAX's persistent compilation cache does
+    not keep) and the most crossings of an edge. ``auto``: widen the kNN reach until the answer
+    is exact (concrete pores)."""
     while True:
         topo, flags = _topology(
             pores.positions, pores.mask, pores.count, k=spec.k, deg=spec.max_degree,
@@ -470,38 +518,8 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
     )  # fmt: skip
     flags["edge_cell"] = edge_overflow
     flags["crossings"] = max_cross > spec.max_crossings
-    messages = {
-        "cell": "a kNN grid cell holds more pores than knn_cell_capacity",
-        "inexact": "the kNN reach is too small for an exact k-nearest-neighbour answer "
-        "(raise GraphSpec.knn_reach)",
-        "degree": f"a pore has more than max_degree={spec.max_degree} half-edges "
-        "(raise GraphSpec.max_degree)",
-        "edge_cell": "an edge-midpoint grid cell holds more edges than edge_cell_capacity",
-        "sparse": "the pores are too sparse for a periodic graph (edges longer than 0.4)",
-        "crossings": f"an edge is crossed by more than max_crossings={spec.max_crossings} edges "
-        "(raise GraphSpec.max_crossings)",
-    }
-    positions = pores.positions
-    if not any(_checks.is_traced(f) for f in flags.values()):
-        for name, flag in flags.items():
-            if bool(flag):
-                detail = ""
-                if name == "crossings":
-                    detail = f" (found {int(max_cross)})"
-                raise ValueError(messages[name] + detail)
-    else:
-        for name, flag in flags.items():
-            positions = eqx.error_if(positions, flag, messages[name])
-    if auto and not _checks.is_traced(topo["half_mask"]):
-        # default sizes: trim the slots to what this graph uses
-        used_deg = max(1, int(jnp.max(jnp.sum(topo["half_mask"], axis=-1))))
-        used_cross = max(1, int(max_cross))
-        order = jnp.argsort(~topo["half_mask"], axis=-1, stable=True)[:, :used_deg]
-        for name in ("half_target", "half_edge", "half_angle", "half_length", "half_mask"):
-            topo[name] = jnp.take_along_axis(topo[name], order, axis=-1)
-        crossings, cmask = crossings[:, :used_cross], cmask[:, :used_cross]
-    return PoreGraph(
-        positions=positions,
+    graph = PoreGraph(
+        positions=pores.positions,
         node_mask=pores.mask,
         node_count=pores.count,
         crossings=crossings,
@@ -509,6 +527,7 @@ def build_graph(pores: Pores, spec: GraphSpec | None = None, *, k: int = 6) -> P
         periodic=pores.periodic,
         **topo,
     )
+    return graph, flags, max_cross
 
 
 def covering_spec(

@@ -239,6 +239,42 @@ def sample_pores(
             f"capacity ({capacity}) must be at least the initial pores' capacity "
             f"({initial.capacity})"
         )
+    pores, flags, total = sampled(
+        key, d, radius_map, initial, capacity, (r_lo, r_hi), bool(periodic)
+    )
+    if not any(_checks.is_traced(f) for f in flags.values()):
+        if bool(flags["range"]):
+            raise ValueError(f"d · radius_map leaves radius_range {radius_range}")
+        if bool(flags["collide"]):
+            raise ValueError(
+                "two initial pores fall into one sampling cell (closer than about "
+                f"{r_lo / math.sqrt(2):.3g}); thin them out first"
+            )
+        if bool(flags["overflow"]):
+            raise ValueError(
+                f"the sampling produced {int(total)} pores, more than capacity={capacity}; "
+                "raise the capacity (pores are never dropped silently)"
+            )
+        return pores
+    positions = pores.positions
+    for name, flag in flags.items():
+        positions = eqx.error_if(positions, flag, SAMPLING_ERRORS[name])
+    return eqx.tree_at(lambda p: p.positions, pores, positions)
+
+
+#: What each flag of :func:`sampled` means.
+SAMPLING_ERRORS = {
+    "range": "d · radius_map leaves radius_range",
+    "collide": "two initial pores fall into one sampling cell",
+    "overflow": "more pores than capacity",
+}
+
+
+def sampled(key, d, radius_map, initial, capacity, radius_range, periodic):
+    """:func:`sample_pores` of checked arguments, with its error flags (``SAMPLING_ERRORS``)
+    returned rather than raised: a program that raises through ``equinox.error_if`` holds host
+    callbacks, which JAX's persistent compilation cache does not keep. Also returns the number
+    of pores sampled (more than ``capacity`` on overflow)."""
     if initial is None:
         init = make_pores(jnp.zeros((1, 2), jnp.float32), periodic=periodic)
         init = eqx.tree_at(lambda p: (p.mask, p.count), init, (jnp.zeros(1, bool), jnp.int32(0)))
@@ -246,30 +282,14 @@ def sample_pores(
     else:
         init = initial
         new_level = jnp.max(jnp.where(init.mask, init.level, -1)).astype(jnp.int32) + 1
+    r_lo, r_hi = radius_range
     g, k = grid_layout(r_lo, r_hi)
     pores, total, collide, out_of_range = _sample(
         key, d, radius_map, init, new_level, r_lo, r_hi, g=g, k=k, capacity=capacity,
-        periodic=bool(periodic),
+        periodic=periodic,
     )  # fmt: skip
-    overflow = total > capacity
-    if not (_checks.is_traced(total) or _checks.is_traced(collide)):
-        if bool(out_of_range):
-            raise ValueError(f"d · radius_map leaves radius_range {radius_range}")
-        if bool(collide):
-            raise ValueError(
-                "two initial pores fall into one sampling cell (closer than about "
-                f"{r_lo / math.sqrt(2):.3g}); thin them out first"
-            )
-        if bool(overflow):
-            raise ValueError(
-                f"the sampling produced {int(total)} pores, more than capacity={capacity}; "
-                "raise the capacity (pores are never dropped silently)"
-            )
-        return pores
-    positions = eqx.error_if(pores.positions, out_of_range, "d · radius_map leaves radius_range")
-    positions = eqx.error_if(positions, collide, "two initial pores fall into one sampling cell")
-    positions = eqx.error_if(positions, overflow, "more pores than capacity")
-    return eqx.tree_at(lambda p: p.positions, pores, positions)
+    flags = {"range": out_of_range, "collide": collide, "overflow": total > capacity}
+    return pores, flags, total
 
 
 def _radius_cells(d, radius_map, xy, g, periodic):
