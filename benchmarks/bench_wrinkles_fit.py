@@ -34,6 +34,7 @@ from _timing import best_of, report
 from skimage import data
 
 from jface import detail
+from jface._compilation import keep_compiled_programs
 from jface.optim import texture_stats
 from jface.wrinkles import WrinkleParams, fit_wrinkles, params_to_json
 from jface.wrinkles._fit import (
@@ -127,10 +128,11 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=3)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--d-levels", type=int, help="default: the mode's (16 fast, 32 paper)")
-    parser.add_argument("--refine-steps", type=int, default=30)
+    parser.add_argument("--refine-steps", type=int, help="default: the mode's (10 fast, 30 paper)")
     parser.add_argument("--stages", action="store_true", help="the cost split of one evaluation")
     parser.add_argument("--save", type=Path, help="folder for the targets and the fits")
     args = parser.parse_args()
+    keep_compiled_programs()  # as the command line does (JFACE_CACHE_DIR=off: compile afresh)
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
     for name in args.targets:

@@ -360,13 +360,17 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
         xlabel="epoch (0: the initial swarm)",
     )
     write_figure(f"{stem}_convergence.png", figure, metadata=meta)
+    # the loss compares zero-mean, unit-variance maps: so does the figure (a measured patch in
+    # [0, 1] and the zero-mean fit on one scale would saturate)
+    maps = [np.asarray(m, np.float64) for m in (patch, fit.fitted)]
+    standard = [(m - m.mean()) / max(float(m.std()), 1e-12) for m in maps]
     pair = plots.panel_grid(
-        [[shade(patch), shade(fit.fitted)], [np.asarray(patch), np.asarray(fit.fitted)]],
+        [[shade(patch), shade(fit.fitted)], standard],
         title=f"Wrinkle fit: measured patch and fitted simulation (loss {float(fit.loss):.3g})",
         col_labels=["measured", "fitted"],
         row_labels=["shaded relief", "displacement"],
         quantities=["relief", "displacement"],
-        units=[None, "displacement (map units)"],
+        units=[None, "displacement (standard deviations)"],
     )
     write_figure(f"{stem}_target_fit.png", pair, metadata=meta)
     if fit.interrupted:

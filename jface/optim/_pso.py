@@ -364,12 +364,6 @@ def swarm_epoch(swarm: Swarm, loss_fn, low, high, cyclic, settings: _Settings) -
     return _absorbed(swarm, x, v, s, bad)
 
 
-def swarm_rescore(swarm: Swarm, loss_fn, low, high, settings: _Settings) -> Swarm:
-    """``swarm`` with its personal bests re-evaluated by another loss (e.g. a finer one)."""
-    ps, bad = swarm_evaluate(loss_fn, low, high, swarm.p, settings)
-    return eqx.tree_at(lambda w: (w.ps, w.n_nonfinite), swarm, (ps, swarm.n_nonfinite + bad))
-
-
 def _scalar(loss_fn: Callable) -> Callable:
     """``loss_fn``, raising a clear error (while tracing) unless it returns a scalar float."""
 
