@@ -1,9 +1,15 @@
-"""JAX's persistent compilation cache, as every jface command (and the test suite) uses it."""
+"""JAX's persistent compilation cache, as every jface command (and the test suite) uses it, and
+jface's own arrays kept beside it (work that runs rather than compiles, e.g. a fit's layout)."""
 
+import functools
+import hashlib
 import os
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
+import numpy as np
 
 
 def keep_compiled_programs() -> bool:
@@ -23,3 +29,56 @@ def keep_compiled_programs() -> bool:
     jax.config.update("jax_compilation_cache_dir", str(where))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     return True
+
+
+def kept_arrays(
+    what: str, settings: tuple, build: Callable[[], dict[str, np.ndarray]]
+) -> dict[str, np.ndarray]:
+    """``build()``, kept on disk (``jface-<what>/`` in the compiled programs' folder) when
+    compiled programs are kept, so that a rerun with the same ``settings`` reads it instead.
+
+    The file's name hashes ``settings`` with this jface's source, the JAX version and the
+    precision, so a change of any of them builds anew. A file that cannot be read (truncated,
+    corrupt) is built again and replaced; one that cannot be written is skipped (the answer is
+    the same, the next run builds it too).
+    """
+    path = kept_path(what, settings)
+    if path is None:
+        return build()
+    try:
+        with open(path, "rb") as file, np.load(file, allow_pickle=False) as stored:
+            return {k: stored[k] for k in stored.files}
+    except Exception:  # none yet, or a damaged copy of derived data: build it again
+        pass
+    arrays = build()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}~", suffix=".npz", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, **arrays)
+            os.replace(tmp, path)  # readers see the whole file or none
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    except OSError:
+        pass
+    return arrays
+
+
+def kept_path(what: str, settings: tuple) -> Path | None:
+    """Where :func:`kept_arrays` keeps ``what`` of ``settings`` (None: nothing is kept)."""
+    folder = jax.config.jax_compilation_cache_dir
+    if not folder:
+        return None
+    name = repr((settings, jax.__version__, bool(jax.config.jax_enable_x64), _source_digest()))
+    return Path(folder) / f"jface-{what}" / f"{hashlib.sha256(name.encode()).hexdigest()[:32]}.npz"
+
+
+@functools.cache
+def _source_digest() -> str:
+    """Hash of jface's Python source (kept arrays of another version are not reused)."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(__file__).parent.rglob("*.py")):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()

@@ -178,3 +178,37 @@ def test_layout_programs_are_cacheable_and_report_their_errors():
     _, flags = _fit._pores(keys, 0.04, ranges, (16, caps[1]))  # too few slots
     with pytest.raises(ValueError, match="more pores than capacity"):
         _fit._checked(None, flags, _fit.SAMPLING_ERRORS)
+
+
+def test_a_rerun_reads_the_layout_kept_on_disk(monkeypatch):
+    """Where compiled programs are kept (as in this suite and on the command line), so is the
+    layout: a rerun (a new process: nothing kept in memory) reads the same arrays back without
+    building, and a damaged file is built anew and replaced."""
+    from jface._compilation import kept_path
+
+    settings = (jax.random.key(7), (64, 64), D_RANGE, SMALL["n_steps"], SMALL["d_levels"])
+    path = kept_path("layouts", _fit._layout_name(*settings))
+    if path is None:
+        pytest.skip("compiled programs are not kept (JFACE_CACHE_DIR=off)")
+    fresh = _layout(*settings)  # the target's (compiled already)
+    built = []
+    monkeypatch.setattr(_fit, "_layout", lambda *a: built.append(a) or _layout(*a))
+
+    def rerun():
+        monkeypatch.setattr(_fit, "_LAYOUTS", {})
+        kept = _fit._kept_layout(*settings)
+        assert jax.tree.structure(kept) == jax.tree.structure(fresh)
+        for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(fresh), strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+
+    rerun()  # built and written unless an earlier run of the suite wrote it
+    assert path.is_file()
+    built.clear()
+    rerun()
+    assert not built  # read back
+    path.write_bytes(path.read_bytes()[:200])  # truncated
+    rerun()
+    assert len(built) == 1
+    built.clear()
+    rerun()
+    assert not built  # the damaged file was replaced

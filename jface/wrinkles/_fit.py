@@ -20,6 +20,7 @@ fixed.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Sequence
 from typing import Any
@@ -33,6 +34,7 @@ from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float
 
 from jface import _checks
+from jface._compilation import kept_arrays
 from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
 from jface.optim._pso import Swarm, swarm_epoch, swarm_settings, swarm_start
 from jface.optim._texture import _stats
@@ -143,20 +145,66 @@ _KEPT_LAYOUTS = 4
 
 
 def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
-    """:func:`_layout`, built once per key and settings in this process (patches of one size
-    fitted with one key share their pores and graphs)."""
-    bits = np.asarray(jax.random.key_data(key)).tobytes()
-    name = (str(jax.random.key_impl(key)), bits, tuple(size), tuple(map(float, d_range)), n_steps,
-            d_levels)  # fmt: skip
+    """:func:`_layout`, built once per key and settings: kept in this process (patches of one
+    size fitted with one key share their pores and graphs) and, where compiled programs are kept
+    (:func:`jface._compilation.keep_compiled_programs`, as the command line does), on disk, so
+    that a rerun reads it (the layout runs for seconds after its programs are compiled)."""
+    name = _layout_name(key, size, d_range, n_steps, d_levels)
     if name not in _LAYOUTS:
         while len(_LAYOUTS) >= _KEPT_LAYOUTS:
             del _LAYOUTS[next(iter(_LAYOUTS))]  # the oldest
-        _LAYOUTS[name] = _layout(key, size, d_range, n_steps, d_levels)
+        arrays = kept_arrays(
+            "layouts", name, lambda: _layout_arrays(_layout(key, size, d_range, n_steps, d_levels))
+        )
+        _LAYOUTS[name] = _layout_from(arrays, name[2], n_steps)
     return _LAYOUTS[name]
 
 
+def _layout_name(key, size, d_range, n_steps, d_levels) -> tuple:
+    """What a layout is built from, as plain values."""
+    bits = np.asarray(jax.random.key_data(key)).tobytes()
+    size, d_range = tuple(map(int, size)), tuple(map(float, d_range))
+    return (str(jax.random.key_impl(key)), bits, size, d_range, int(n_steps), int(d_levels))
+
+
+_GRAPH_ARRAYS = tuple(f.name for f in dataclasses.fields(PoreGraph) if not f.metadata.get("static"))
+
+
+def _layout_arrays(layout: _Layout) -> dict[str, np.ndarray]:
+    """The layout as named arrays (its sizes included), for :func:`_layout_from`."""
+    arrays = {"d_values": np.asarray(layout.d_values)}
+    for field in ("n_samples", "span", "entries"):
+        arrays[field] = np.asarray(getattr(layout, field))
+    for level, graph in enumerate(layout.graphs):
+        arrays[f"{level}.periodic"] = np.asarray(graph.periodic)
+        arrays.update({f"{level}.{f}": np.asarray(getattr(graph, f)) for f in _GRAPH_ARRAYS})
+    return arrays
+
+
+def _layout_from(arrays: dict[str, np.ndarray], size, n_steps) -> _Layout:
+    graphs = tuple(
+        PoreGraph(
+            **{f: jnp.asarray(arrays[f"{level}.{f}"]) for f in _GRAPH_ARRAYS},
+            periodic=bool(arrays[f"{level}.periodic"]),
+        )
+        for level in range(2)
+    )
+    n_samples, span, entries = (
+        tuple(int(n) for n in arrays[f]) for f in ("n_samples", "span", "entries")
+    )
+    return _Layout(
+        jnp.asarray(arrays["d_values"]), graphs, size, _tiled(size), n_samples, n_steps, span,
+        entries,
+    )  # fmt: skip
+
+
+def _tiled(size) -> tuple[int, int]:
+    """The drawn map's shape: ``size`` rounded up to whole tiles."""
+    return tuple(-(-n // _TILE) * _TILE for n in size)
+
+
 def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
-    shape = tuple(-(-n // _TILE) * _TILE for n in size)
+    shape = _tiled(size)
     lo, hi = d_range
     ranges = ((lo, hi), (lo / 2, hi / 2))
     keys = tuple(jax.random.split(key))
