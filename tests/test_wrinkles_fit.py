@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jface._compilation import kept_arrays, kept_path
 from jface.cli import main
 from jface.io import write_exr
 from jface.optim import texture_stats
@@ -99,13 +100,13 @@ def test_bad_input(patch, kwargs, error, match, unchecked):
 
 
 def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
-    built = []
+    looked_up = []
     monkeypatch.setattr(_fit, "_LAYOUTS", {})
-    monkeypatch.setattr(_fit, "_layout", lambda *a: built.append(a) or _layout(*a))
+    monkeypatch.setattr(_fit, "kept_arrays", lambda *a: looked_up.append(a) or kept_arrays(*a))
     kwargs = dict(SMALL, n_trials=3, names=NAMES, base=TRUE, refine_steps=0)
     runs = [fit_wrinkles(jax.random.key(0), target, **kwargs) for _ in range(2)]
     assert np.array_equal(runs[0].swarm.params, runs[1].swarm.params)
-    assert len(built) == 1  # the second fit (same key, size and settings) kept the layout
+    assert len(looked_up) == 1  # the second fit (same key, size and settings) kept the layout
     # rungs of n_epochs // 8 = 1 epoch: three trials run one, the better two another, the best
     # goes on to n_epochs = 10 unless it stalls (10 epochs without a 0.1 % gain)
     epochs = sorted(runs[0].epochs_run)
@@ -184,8 +185,6 @@ def test_a_rerun_reads_the_layout_kept_on_disk(monkeypatch):
     """Where compiled programs are kept (as in this suite and on the command line), so is the
     layout: a rerun (a new process: nothing kept in memory) reads the same arrays back without
     building, and a damaged file is built anew and replaced."""
-    from jface._compilation import kept_path
-
     settings = (jax.random.key(7), (64, 64), D_RANGE, SMALL["n_steps"], SMALL["d_levels"])
     path = kept_path("layouts", _fit._layout_name(*settings))
     if path is None:

@@ -610,7 +610,7 @@ def fit_wrinkles(
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
     if interrupted:
-        _, levels, _, image = _refine_start(sim_key, levels, layout)
+        _, levels, _, image, _ = _refine_start(sim_key, levels, layout, target_stats)
         return WrinkleFit(
             levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
         )
@@ -707,32 +707,41 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
     fields = tuple(
         (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
     )
-    sims, levels, fullest, image = _refine_start(sim_key, levels, layout)
+    sims, levels, fullest, image, _ = _refine_start(sim_key, levels, layout, target_stats)
     if not fields or steps == 0:
         return levels, start, image
-    # static passes (differentiable) for twice the start's fullest tile: a step whose wider
-    # fields need more is undrawable (inf) and the line search backs off
-    passes = tuple(max(1, -(-2 * int(c) // _CAPACITY)) for c in fullest)
-    best, refined, image_best = _refine_solve(
-        sim_key, sims, levels, layout, target_stats, fields, passes, steps
-    )
-    if not bool(refined < start):  # keep the swarm's answer if the refinement did not help
+    passes = tuple(_refine_passes(int(c)) for c in fullest)
+    refined = _refine_solve(sim_key, sims, levels, layout, target_stats, fields, passes, steps)
+    # the answer's map and loss from the start's program (a draw in the solve's program would
+    # add a third of its compile time); the simulation it repeats is the same
+    _, refined, _, image_refined, loss = _refine_start(sim_key, refined, layout, target_stats)
+    if not bool(loss < start):  # keep the swarm's answer if the refinement did not help
         return levels, start, image
-    return best, refined, image_best
+    return refined, loss, image_refined
+
+
+def _refine_passes(fullest: int) -> int:
+    """Static passes (differentiable drawing) for a start whose fullest tile holds ``fullest``
+    primitives: 1.5-3x headroom, so that a step whose wider fields need more mostly stays
+    drawable (a step beyond is inf and the line search backs off), and a power of two, so that
+    refinements of other patches mostly share one compiled program."""
+    need = max(1, -(-3 * fullest // (2 * _CAPACITY)))
+    return 1 << (need - 1).bit_length()
 
 
 @eqx.filter_jit
-def _refine_start(sim_key, levels, layout: _Layout):
-    """The best agent's simulation, its fullest tile per level and its map (one compile)."""
+def _refine_start(sim_key, levels, layout: _Layout, target_stats):
+    """The simulation of ``levels``, its fullest tile per level, its map and the map's loss
+    (one compile for the refinement's start and its answer)."""
     sims, levels = _simulate(sim_key, levels, layout)
     image, _, fullest = _draw_checked(sim_key, sims, levels, layout)
-    return sims, levels, fullest, image
+    return sims, levels, fullest, image, _loss(image, target_stats)
 
 
 @eqx.filter_jit
 def _refine_solve(sim_key, sims, levels, layout: _Layout, target_stats, fields, passes, steps):
     """BFGS over the logits of ``fields`` (static), drawn with ``passes`` (static); the refined
-    levels, their loss and their map."""
+    levels."""
 
     def unpack(z):
         changes: tuple[dict, dict] = ({}, {})
@@ -741,12 +750,10 @@ def _refine_solve(sim_key, sims, levels, layout: _Layout, target_stats, fields, 
             changes[lv][f] = lo + (hi - lo) * jax.nn.sigmoid(z[i])
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
 
-    def drawn(z):
-        image, bad, _ = _draw_checked(sim_key, sims, unpack(z), layout, passes)
-        return image, jnp.where(bad, jnp.inf, _loss(image, target_stats))
-
     def loss(z, _):
-        return drawn(z)[1]  # inf where undrawable: the line search backs off
+        image, bad, _ = _draw_checked(sim_key, sims, unpack(z), layout, passes)
+        # inf where undrawable: the line search backs off
+        return jnp.where(bad, jnp.inf, _loss(image, target_stats))
 
     def logit(lv, f):
         lo, hi = PARAMETER_RANGES[f]
@@ -756,5 +763,4 @@ def _refine_solve(sim_key, sims, levels, layout: _Layout, target_stats, fields, 
     z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
     solver = optx.BFGS(rtol=1e-4, atol=1e-6)
     sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
-    image, value = drawn(sol.value)
-    return unpack(sol.value), value, image
+    return unpack(sol.value)
