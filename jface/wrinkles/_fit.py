@@ -156,7 +156,7 @@ def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
         arrays = kept_arrays(
             "layouts", name, lambda: _layout_arrays(_layout(key, size, d_range, n_steps, d_levels))
         )
-        _LAYOUTS[name] = _layout_from(arrays, name[2], n_steps)
+        _LAYOUTS[name] = _layout_from(arrays, tuple(map(int, size)), n_steps)
     return _LAYOUTS[name]
 
 
@@ -732,10 +732,10 @@ def _refine_passes(fullest: int) -> int:
 @eqx.filter_jit
 def _refine_start(sim_key, levels, layout: _Layout, target_stats):
     """The simulation of ``levels``, its fullest tile per level, its map and the map's loss
-    (one compile for the refinement's start and its answer)."""
+    (inf where undrawable; one compile for the refinement's start and its answer)."""
     sims, levels = _simulate(sim_key, levels, layout)
-    image, _, fullest = _draw_checked(sim_key, sims, levels, layout)
-    return sims, levels, fullest, image, _loss(image, target_stats)
+    image, bad, fullest = _draw_checked(sim_key, sims, levels, layout)
+    return sims, levels, fullest, image, jnp.where(bad, jnp.inf, _loss(image, target_stats))
 
 
 @eqx.filter_jit
