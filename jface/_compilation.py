@@ -1,6 +1,7 @@
 """JAX's persistent compilation cache, as every jface command (and the test suite) uses it, and
 jface's own arrays kept beside it (work that runs rather than compiles, e.g. a fit's layout)."""
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -45,25 +46,36 @@ def kept_arrays(
     path = kept_path(what, settings)
     if path is None:
         return build()
+    arrays = _read_kept(path)
+    if arrays is None:
+        arrays = build()
+        with contextlib.suppress(OSError):  # unwritable: the next run builds it too
+            _write_kept(path, arrays)
+    return arrays
+
+
+def _read_kept(path: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of ``path``; None when there is none yet or it is damaged (built again)."""
     try:
         with open(path, "rb") as file, np.load(file, allow_pickle=False) as stored:
             return {k: stored[k] for k in stored.files}
-    except Exception:  # none yet, or a damaged copy of derived data: build it again
-        pass
-    arrays = build()
+    except Exception:  # a missing, truncated or corrupt copy of derived data
+        return None
+
+
+def _write_kept(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write ``path`` through a temporary file and a rename, so readers see all of it or none.
+    Not :func:`jface.io.atomic_path`: inside a command's session that would stage the file as
+    one of the command's outputs."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}~", suffix=".npz", dir=path.parent)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}~", suffix=".npz", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez(f, **arrays)
-            os.replace(tmp, path)  # readers see the whole file or none
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-    except OSError:
-        pass
-    return arrays
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def kept_path(what: str, settings: tuple) -> Path | None:
