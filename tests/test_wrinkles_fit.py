@@ -82,6 +82,27 @@ def test_refinement_never_worsens_and_history_is_monotone(fit, target):
     assert float(fit.levels[1].d) == pytest.approx(float(fit.levels[0].d) / 2)
 
 
+def test_size_classes_give_the_whole_grids_losses(target):
+    """The swarm evaluates each agent on its α_d's size class (the graphs cut to that class's
+    slots): the same losses as drawn on the whole grid's slots, with fewer slots for the sparse
+    class."""
+    layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 30, 4)
+    dense, sparse = layout.slots
+    assert 0 < layout.split < 4
+    assert sparse[1] < dense[1]  # the finer level's pores fewer where α_d is larger
+    names = ("d", *NAMES)
+    x = jnp.array([[float(d), 0.6, 1.0] for d in layout.d_values], jnp.float32)
+    assert set(np.asarray(jax.vmap(layout.size_class)(x[:, 0])).tolist()) == {0, 1}
+    key, stats = jax.random.key(3), texture_stats(target)
+    classed = _SwarmLoss(key, stats, TRUE, layout, names)(x)
+
+    @jax.jit
+    def whole(x):  # every agent on the whole grid's slots
+        return _fit._loss(synthesize(key, _levels_from(x, names, TRUE), layout), stats)
+
+    np.testing.assert_allclose(classed, [whole(a) for a in x], rtol=1e-5)
+
+
 @pytest.mark.parametrize(
     ("patch", "kwargs", "error", "match"),
     [

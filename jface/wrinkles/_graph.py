@@ -21,6 +21,7 @@ candidates are the edges whose midpoints lie within the longest edge length.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from typing import NamedTuple
@@ -564,29 +565,32 @@ def covering_spec(
     )
 
 
+_NODE_SLOTS = ("positions", "node_mask", "half_target", "half_edge", "half_angle", "half_length",
+               "half_mask")  # fmt: skip
+_EDGE_SLOTS = ("edge_nodes", "edge_delta", "edge_length", "edge_angle", "edge_mask", "crossings",
+               "crossing_mask")  # fmt: skip
+_HALF_EDGES = ("half_target", "half_edge", "half_angle", "half_length", "half_mask")
+
+
+def cut_slots(g: PoreGraph, nodes: int, edges: int) -> PoreGraph:
+    """``g`` (one graph or a batch, leading axes) cut to its first ``nodes`` node slots and
+    ``edges`` edge slots. The valid ones come first, so a graph holding at most that many loses
+    nothing: the same graph at a smaller static size."""
+    axis = g.node_mask.ndim - 1
+    cut = {f: lax.slice_in_dim(getattr(g, f), 0, nodes, axis=axis) for f in _NODE_SLOTS}
+    cut |= {f: lax.slice_in_dim(getattr(g, f), 0, edges, axis=axis) for f in _EDGE_SLOTS}
+    return dataclasses.replace(g, **cut)
+
+
 @functools.partial(jax.jit, static_argnums=(1, 2, 3, 4))
 def _trim(g: PoreGraph, n: int, e: int, d: int, c: int) -> PoreGraph:
     """``g`` cut to ``n`` nodes, ``e`` edges, ``d`` half-edges per node (valid ones first) and
     ``c`` crossings per edge."""
-    order = jnp.argsort(~g.half_mask, axis=-1, stable=True)[:n, :d]
-    half = {
-        name: jnp.take_along_axis(getattr(g, name)[:n], order, axis=-1)
-        for name in ("half_target", "half_edge", "half_angle", "half_length", "half_mask")
-    }
-    return PoreGraph(
-        positions=g.positions[:n],
-        node_mask=g.node_mask[:n],
-        node_count=g.node_count,
-        edge_nodes=g.edge_nodes[:e],
-        edge_delta=g.edge_delta[:e],
-        edge_length=g.edge_length[:e],
-        edge_angle=g.edge_angle[:e],
-        edge_mask=g.edge_mask[:e],
-        edge_count=g.edge_count,
-        crossings=g.crossings[:e, : max(c, 1)],
-        crossing_mask=g.crossing_mask[:e, : max(c, 1)],
-        periodic=g.periodic,
-        **half,
+    order = jnp.argsort(~g.half_mask, axis=-1, stable=True)[:, :d]
+    half = {f: jnp.take_along_axis(getattr(g, f), order, axis=-1) for f in _HALF_EDGES}
+    g = cut_slots(dataclasses.replace(g, **half), n, e)
+    return dataclasses.replace(
+        g, crossings=g.crossings[:, : max(c, 1)], crossing_mask=g.crossing_mask[:, : max(c, 1)]
     )
 
 
