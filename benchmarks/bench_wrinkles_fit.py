@@ -14,7 +14,7 @@ the fitted map, the swarm's history, the fitted levels as JSON) for
 ``examples/wrinkles_fit_modes.py``, which draws them side by side.
 
 ``--stages`` first prints the cost of one swarm evaluation split into simulation, drawing and
-texture loss, and the layout time (pores and graphs of the α_d grid).
+texture loss, per size class of the α_d grid, and the layout time (its pores and graphs).
 
 Run: ``python benchmarks/bench_wrinkles_fit.py [--targets known-1 brick] [--modes fast paper]
 [--agents 50] [--epochs 100] [--trials 3] [--save DIR]``.
@@ -54,15 +54,28 @@ TARGETS = ["known-1", "known-2", "known-3", "brick", "gravel", "synthesized"]
 
 
 def stages(target, layout, agents: int) -> None:
-    """ms per agent of each stage of one vmapped swarm evaluation (compiled first)."""
+    """ms per agent of each stage of a swarm evaluation, per size class of the α_d grid (agents
+    with α_d in that class, on its graph slots, one after the other as in the fit; compiled
+    first)."""
+    d_values = np.asarray(layout.d_values)
+    for c, grid in enumerate((d_values[: layout.split], d_values[layout.split :])):
+        class_stages(target, layout.narrowed(c), grid, agents)
+
+
+def class_stages(target, narrow, grid, agents: int) -> None:
     base = (WrinkleParams(d=0.035), WrinkleParams(d=0.0175, snoise=0.001))
     low, high, _ = _bounds(PAPER_NAMES, D_RANGE, {})
     u = np.random.default_rng(0).uniform(size=(agents, len(PAPER_NAMES)))
-    x = jnp.asarray(low + u * (high - low), jnp.float32)
+    x = low + u * (high - low)
+    x[:, PAPER_NAMES.index("d")] = np.random.default_rng(1).choice(grid, agents)
+    x = jnp.asarray(x, jnp.float32)
     key, stats = jax.random.key(5), texture_stats(target)
-    sim = jax.jit(jax.vmap(lambda x: _simulate(key, _levels_from(x, PAPER_NAMES, base), layout)))
-    # the agents draw one after the other, each with the passes its tiles need (as in the fit)
-    draw = jax.jit(lambda s, lv: jax.lax.map(lambda a: _draw_checked(key, *a, layout)[:2], (s, lv)))
+
+    def one_sim(a):
+        return _simulate(key, _levels_from(a, PAPER_NAMES, base), narrow)
+
+    sim = jax.jit(lambda x: jax.lax.map(one_sim, x))
+    draw = jax.jit(lambda s, lv: jax.lax.map(lambda a: _draw_checked(key, *a, narrow)[:2], (s, lv)))
     loss = jax.jit(jax.vmap(lambda image: _loss(image, stats)))
     sims, levels = jax.block_until_ready(sim(x))
     images, bad = jax.block_until_ready(draw(sims, levels))
@@ -73,7 +86,8 @@ def stages(target, layout, agents: int) -> None:
         ("texture loss", lambda: loss(images)),
     ):
         report(
-            f"one swarm evaluation, {agents} agents, {target.shape[0]}², stage: {name}",
+            f"one swarm evaluation, {agents} agents of α_d {grid[0]:.3f}-{grid[-1]:.3f}, "
+            f"{target.shape[0]}², stage: {name}",
             best_of(fn, repeats=2) / agents,
             note="ms per agent",
         )
