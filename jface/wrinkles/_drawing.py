@@ -200,15 +200,15 @@ def primitives(
     ends = move_v[graph.edge_nodes]  # (E, 2, 2)
     start = a + ends[:, 0]
     delta = graph.edge_delta + ends[:, 1] - ends[:, 0]
-    t = jnp.linspace(0.0, 1.0, N_VERTICES, dtype=jnp.float32)
+    # the inner vertices only: the end vertices move with their pores (no offset)
+    t = jnp.linspace(0.0, 1.0, N_VERTICES, dtype=jnp.float32)[1:-1]
     verts = a[:, None, :] + t[None, :, None] * graph.edge_delta[:, None, :]
     verts = jnp.mod(verts, 1.0) if per else verts
     along = ends[:, None, 0] + t[None, :, None] * (ends[:, None, 1] - ends[:, None, 0])
-    rest = perturbation(k_field, verts, params, per) - along  # zero at the end points
+    rest = perturbation(k_field, verts, params, per) - along
     length = jnp.sqrt(jnp.maximum(jnp.sum(delta * delta, -1), 1e-20))
     normal = jnp.stack([-delta[:, 1], delta[:, 0]], -1) / length[:, None]  # as _fragments
-    offsets = jnp.sum(rest * normal[:, None, :], -1)
-    offsets = offsets.at[:, 0].set(0.0).at[:, -1].set(0.0)
+    offsets = jnp.pad(jnp.sum(rest * normal[:, None, :], -1), ((0, 0), (1, 1)))
 
     e = weights.shape[0]
     zeros2 = jnp.zeros((n, 2), jnp.float32)
