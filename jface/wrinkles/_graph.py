@@ -565,11 +565,10 @@ def covering_spec(
     )
 
 
-_NODE_SLOTS = ("positions", "node_mask", "half_target", "half_edge", "half_angle", "half_length",
-               "half_mask")  # fmt: skip
+_HALF_EDGES = ("half_target", "half_edge", "half_angle", "half_length", "half_mask")
+_NODE_SLOTS = ("positions", "node_mask", *_HALF_EDGES)
 _EDGE_SLOTS = ("edge_nodes", "edge_delta", "edge_length", "edge_angle", "edge_mask", "crossings",
                "crossing_mask")  # fmt: skip
-_HALF_EDGES = ("half_target", "half_edge", "half_angle", "half_length", "half_mask")
 
 
 def cut_slots(g: PoreGraph, nodes: int, edges: int) -> PoreGraph:
@@ -586,11 +585,12 @@ def cut_slots(g: PoreGraph, nodes: int, edges: int) -> PoreGraph:
 def _trim(g: PoreGraph, n: int, e: int, d: int, c: int) -> PoreGraph:
     """``g`` cut to ``n`` nodes, ``e`` edges, ``d`` half-edges per node (valid ones first) and
     ``c`` crossings per edge."""
+    g = cut_slots(g, n, e)  # first, so that only the nodes kept sort their half-edges
     order = jnp.argsort(~g.half_mask, axis=-1, stable=True)[:, :d]
     half = {f: jnp.take_along_axis(getattr(g, f), order, axis=-1) for f in _HALF_EDGES}
-    g = cut_slots(dataclasses.replace(g, **half), n, e)
+    c = max(c, 1)
     return dataclasses.replace(
-        g, crossings=g.crossings[:, : max(c, 1)], crossing_mask=g.crossing_mask[:, : max(c, 1)]
+        g, crossings=g.crossings[:, :c], crossing_mask=g.crossing_mask[:, :c], **half
     )
 
 
