@@ -6,15 +6,7 @@ import numpy as np
 import pytest
 
 from jface.optim import PSOResult, pso
-from jface.optim._pso import (
-    _bound,
-    _delta,
-    _neighbourhood_best,
-    swarm_epoch,
-    swarm_rescored,
-    swarm_settings,
-    swarm_start,
-)
+from jface.optim._pso import _bound, _delta, _neighbourhood_best
 
 
 def sphere(x):
@@ -203,34 +195,6 @@ def test_batched_loss_equals_the_vmapped_one(key):
     np.testing.assert_allclose(batched.params, mapped.params, rtol=1e-6)
     with pytest.raises(TypeError, match="one loss per agent"):
         pso(key, rastrigin, box(4, 5.12), n_agents=12, batched=True)
-
-
-def test_rescored_swarm_keeps_its_moves_and_scores_its_bests_anew(key):
-    """A change of loss on the way (the wrinkle fit's change of fidelity): the personal bests
-    are scored by the new loss, NaN counted and turned into +inf; positions, velocities, bests,
-    seed and epoch stay."""
-    low, high = (np.full(3, -2.0, np.float32), np.full(3, 2.0, np.float32))
-    settings = swarm_settings(8, batched=True)
-    cyclic = np.zeros(3, bool)
-
-    def sphere_batch(xs):
-        return jax.vmap(sphere)(xs)
-
-    def shifted(xs):  # another loss; NaN for the agents with a positive first coordinate
-        return jnp.where(xs[:, 0] > 0, jnp.nan, jnp.sum((xs + 0.5) ** 2, -1))
-
-    swarm = swarm_start(key, sphere_batch, low, high, settings)
-    swarm = swarm_epoch(swarm, sphere_batch, low, high, cyclic, settings)
-    rescored = swarm_rescored(swarm, shifted, low, high, settings)
-    units = low + np.asarray(swarm.p) * (high - low)
-    expected = np.sum((units + 0.5) ** 2, -1)
-    nan = units[:, 0] > 0
-    assert 0 < nan.sum() < 8
-    np.testing.assert_allclose(np.asarray(rescored.ps)[~nan], expected[~nan], rtol=1e-6)
-    assert np.all(np.isinf(np.asarray(rescored.ps)[nan]))
-    assert int(rescored.n_nonfinite) == int(swarm.n_nonfinite) + nan.sum()
-    for field in ("x", "v", "p", "seed", "epoch"):
-        assert np.array_equal(getattr(rescored, field), getattr(swarm, field))
 
 
 @pytest.mark.parametrize(

@@ -364,18 +364,6 @@ def swarm_epoch(swarm: Swarm, loss_fn, low, high, cyclic, settings: _Settings) -
     return _absorbed(swarm, x, v, s, bad)
 
 
-@eqx.filter_jit
-def _with_scores(swarm: Swarm, ps, bad) -> Swarm:
-    return Swarm(swarm.x, swarm.v, swarm.p, ps, swarm.seed, swarm.epoch, swarm.n_nonfinite + bad)
-
-
-def swarm_rescored(swarm: Swarm, loss_fn, low, high, settings: _Settings) -> Swarm:
-    """``swarm`` with its personal bests scored by another loss (e.g. a change of fidelity):
-    the positions, velocities and moves go on unchanged."""
-    ps, bad = swarm_evaluate(loss_fn, low, high, swarm.p, settings)
-    return _with_scores(swarm, ps, bad)
-
-
 def _scalar(loss_fn: Callable) -> Callable:
     """``loss_fn``, raising a clear error (while tracing) unless it returns a scalar float."""
 

@@ -36,7 +36,7 @@ from jaxtyping import Array, Float
 from jface import _checks
 from jface._compilation import kept_arrays
 from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
-from jface.optim._pso import Swarm, swarm_epoch, swarm_rescored, swarm_settings, swarm_start
+from jface.optim._pso import Swarm, swarm_epoch, swarm_settings, swarm_start
 from jface.optim._texture import _stats
 from jface.wrinkles._drawing import (
     BETA,
@@ -79,9 +79,6 @@ D_LEVELS = {"fast": 16, "paper": 32}
 REFINE_STEPS = {"fast": 10, "paper": 30}
 #: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
 STALL_TOLERANCE, PATIENCE = 1e-3, 10
-#: Fast mode: the race of the trials simulates this share of the steps (a cheaper loss whose
-#: ranks agree with the full one's; the winner goes on at full fidelity).
-RACE_STEPS = 0.5
 
 
 class WrinkleFit(eqx.Module):
@@ -90,11 +87,8 @@ class WrinkleFit(eqx.Module):
     Attributes:
         levels: the fitted ``(level 1, level 2)`` parameters (after refinement).
         loss: texture loss of ``levels``.
-        swarm_loss: texture loss of the swarm's best, before the gradient refinement (at the
-            race's fidelity where a fast fit was interrupted during its race).
-        swarm: the :class:`jface.optim.PSOResult` (history for a convergence plot; in fast mode
-            the trials that lost the race have losses at the race's fidelity, and the winner's
-            history steps where its bests were scored anew at full fidelity).
+        swarm_loss: texture loss of the swarm's best, before the gradient refinement.
+        swarm: the :class:`jface.optim.PSOResult` (history for a convergence plot).
         names: the fitted parameter names, in the order of ``swarm.params`` (static).
         sim_key: the simulation key of the best trial (reproduces ``fitted``).
         fitted: the synthesised map of ``levels``, ``(H, W)``.
@@ -584,9 +578,7 @@ def fit_wrinkles(
             and that value is what the result reports.
         mode: ``"fast"`` (default): the trials race by successive halving (each runs
             ``n_epochs // 8`` epochs, the better half goes on; the last runs up to ``n_epochs``)
-            at lower fidelity (:data:`RACE_STEPS` of the simulation steps; the winner's personal
-            bests are scored anew at full fidelity before it goes on), and the swarm stops when
-            its best loss fell by less than 0.1 % over 10 epochs;
+            and the swarm stops when its best loss fell by less than 0.1 % over 10 epochs;
             ``"paper"``: every trial runs all ``n_epochs`` (the paper's procedure).
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
@@ -655,19 +647,9 @@ def fit_wrinkles(
     layout = _kept_layout(k_layout, target.shape, d_range, n_steps, d_levels)
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
-    race_layout = dataclasses.replace(layout, n_steps=max(1, round(RACE_STEPS * n_steps)))
-
-    def losses(sim_key):  # full fidelity, and the race's (fewer simulation steps) in fast mode
-        full = _SwarmLoss(sim_key, target_stats, base, layout, names, mesh)
-        race = mode == "fast" and n_trials > 1
-        return full, _SwarmLoss(
-            sim_key, target_stats, base, race_layout, names, mesh
-        ) if race else full
-
-    # one swarm per trial, each with its own simulation key; all share one compiled loss per
-    # fidelity
+    # one swarm per trial, each with its own simulation key; all share one compiled loss
     runs = [
-        _Trial(k, *losses(sk))
+        _Trial(k, _SwarmLoss(sk, target_stats, base, layout, names, mesh))
         for k, sk in zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True)
     ]
     low, high = low.astype(np.float32), high.astype(np.float32)
@@ -687,9 +669,11 @@ def fit_wrinkles(
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
     layout = layout.narrowed(int(layout.size_class(levels[0].d)))  # as the swarm drew it
-    if interrupted:  # the answer's loss at full fidelity (the race's is cheaper)
-        _, levels, _, image, loss = _refine_start(sim_key, levels, layout, target_stats)
-        return WrinkleFit(levels, loss, swarm.loss, swarm, names, sim_key, image, True, epochs)
+    if interrupted:
+        _, levels, _, image, _ = _refine_start(sim_key, levels, layout, target_stats)
+        return WrinkleFit(
+            levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
+        )
     refined, loss, image = _refine(
         sim_key, levels, swarm.loss, layout, target_stats, names, refine_steps
     )
@@ -713,35 +697,14 @@ def _agent_mesh(devices) -> Mesh | None:
 
 
 class _Trial:
-    """One trial's swarm, advanced an epoch at a time, with its best loss after each epoch. It
-    starts with the ``cheap`` loss (the full ``loss`` where they are the same) and goes on with
-    the full one after :meth:`sharpen`."""
+    """One trial's swarm, advanced an epoch at a time, with its best loss after each epoch."""
 
-    def __init__(self, key, loss: _SwarmLoss, cheap: _SwarmLoss):
-        self.key, self.full_loss, self.loss, self.swarm, self.history = key, loss, cheap, None, []
-        self.sharpened_at = 0  # the history's first entry at full fidelity
-
-    @property
-    def full(self) -> bool:
-        """Whether the losses are at full fidelity."""
-        return self.loss is self.full_loss
-
-    def sharpen(self, search) -> None:
-        """Go on at full fidelity: the personal bests re-scored by the full loss (the latest
-        best of the history with them)."""
-        if self.full:
-            return
-        low, high, _, settings = search
-        self.loss = self.full_loss
-        if self.swarm is not None:
-            self.swarm = swarm_rescored(self.swarm, self.loss, low, high, settings)
-            self.history[-1] = float(self.swarm.best)
-            self.sharpened_at = len(self.history) - 1
+    def __init__(self, key, loss: _SwarmLoss):
+        self.key, self.loss, self.swarm, self.history = key, loss, None, []
 
     def advance(self, epochs: int, search, index: int, progress, stall: bool = False) -> None:
         """Up to ``epochs`` more epochs (the first call starts the swarm); with ``stall``, stop
-        once the best loss fell by less than ``STALL_TOLERANCE`` over ``PATIENCE`` epochs (at
-        full fidelity)."""
+        once the best loss fell by less than ``STALL_TOLERANCE`` over ``PATIENCE`` epochs."""
         low, high, cyclic, settings = search
         if self.swarm is None:
             self.swarm = swarm_start(self.key, self.loss, low, high, settings)
@@ -755,14 +718,14 @@ class _Trial:
                 progress(index, len(self.history) - 1, self.history[-1])
 
     def stalled(self) -> bool:
-        h = self.history[self.sharpened_at :]
+        h = self.history
         return len(h) > PATIENCE and h[-PATIENCE - 1] - h[-1] <= STALL_TOLERANCE * abs(h[-1])
 
 
 def _halve(runs: list[_Trial], n_epochs: int, search, progress) -> None:
-    """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs (at the race's
-    fidelity), the better half goes on to the next rung, and the last one runs up to
-    ``n_epochs`` epochs in all at full fidelity, stopping early when it stalls."""
+    """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs, the better half
+    goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
+    early when it stalls."""
     rung = max(1, n_epochs // 8)
     alive = list(range(len(runs)))
     while len(alive) > 1:
@@ -770,15 +733,13 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress) -> None:
             runs[t].advance(rung, search, t, progress)
         alive = sorted(alive, key=lambda t: runs[t].history[-1])[: -(-len(alive) // 2)]
     (t,) = alive
-    runs[t].sharpen(search)
     done = max(0, len(runs[t].history) - 1)
     runs[t].advance(n_epochs - done, search, t, progress, stall=True)
 
 
 def _result(runs: list[_Trial], low, high) -> PSOResult:
     """The trials as one :class:`PSOResult`; histories of trials that stopped early are padded
-    with their final best (trials never started, after an interrupt, are left out). The best
-    trial is the best at full fidelity where one got there (the race's losses are cheaper)."""
+    with their final best (trials never started, after an interrupt, are left out)."""
     runs = [r for r in runs if r.swarm is not None]
     if not runs:
         raise KeyboardInterrupt  # nothing found yet
@@ -786,7 +747,7 @@ def _result(runs: list[_Trial], low, high) -> PSOResult:
     history = [r.history + [r.history[-1]] * (longest - len(r.history)) for r in runs]
     swarms: list[Swarm] = [r.swarm for r in runs]
     losses = jnp.stack([w.best for w in swarms])
-    best = min(range(len(runs)), key=lambda i: (not runs[i].full, float(losses[i])))
+    best = int(jnp.argmin(losses))
     params = jnp.stack([w.best_params(low, high) for w in swarms])
     return PSOResult(
         params=params[best],
