@@ -89,7 +89,7 @@ def _octave(xy, frequency, seed, period):
     ix0 = cell[..., 0].astype(jnp.int32)
     iy0 = cell[..., 1].astype(jnp.int32)
 
-    # the four lattice corners along a trailing axis (traced once, not four times)
+    # the four lattice corners along a trailing axis: traced once, not once per corner
     dx, dy = np.array([0, 1, 0, 1], np.int32), np.array([0, 0, 1, 1], np.int32)
     ix, iy = ix0[..., None] + dx, iy0[..., None] + dy
     period = jnp.expand_dims(period, -1)
