@@ -177,7 +177,9 @@ def test_unwarp_returns_an_aligned_face_to_its_training_frame(lfw64, warped):
     assert set(np.asarray(chosen).tolist()) == set(range(len(truth)))  # every transform drawn
     for k in range(3):
         again, i = faces.unwarp(keys[k], aligned[0], truth)
-        assert int(i) == int(chosen[k]) and np.array_equal(again, unwarped[k])  # seeded
+        assert np.array_equal(again, faces.unwarp(keys[k], aligned[0], truth)[0])  # seeded
+        # vmap may fuse the bilinear weights differently from an eager call: equal to rounding
+        assert int(i) == int(chosen[k]) and np.allclose(again, unwarped[k], rtol=0, atol=1e-5)
         reference = faces.warp(aligned[0], faces.invert_affine(truth[int(i)]))
         assert np.allclose(unwarped[k], reference, atol=1e-6)
     # a face aligned by transform i and un-warped by it is the training face again
