@@ -23,6 +23,13 @@ if keep_compiled_programs():
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)  # the tests' are small
 
 
+#: Options of the suite's command-line wrinkle fits (on 64² patches; add ``--iters``): one set of
+#: static sizes (the fit's layout does not depend on the seed), so that the fit compiles once per
+#: process and its XLA flags, and later fits read it from the persistent cache.
+TINY_FIT = ["--agents", "6", "--trials", "1", "--steps", "5", "--d-levels", "2",
+            "--d-range", "0.04", "0.05", "--refine-steps", "0"]  # fmt: skip
+
+
 def free_port() -> int:
     """A TCP port on localhost that is free now (for a test's coordinator)."""
     with socket.socket() as probe:

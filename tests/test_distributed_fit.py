@@ -14,7 +14,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from conftest import free_port, run_jface, run_with_process_counts
+from conftest import TINY_FIT, free_port, run_jface, run_with_process_counts
 
 from jface import io
 from jface._distributed import deterministic_cpu_flags
@@ -22,8 +22,7 @@ from jface.cli import main
 from jface.wrinkles import fit_wrinkles
 
 #: A fit small enough to compile and run in well under a minute on two cores.
-FIT = ["--agents", "6", "--iters", "2", "--trials", "1", "--steps", "5", "--d-levels", "2",
-       "--d-range", "0.04", "0.05", "--refine-steps", "0"]  # fmt: skip
+FIT = [*TINY_FIT, "--iters", "2"]
 #: Every process of these tests runs XLA's CPU code the one deterministic way (as the command's
 #: own processes do), so that the persistent compilation cache serves all of them.
 FLAGS = deterministic_cpu_flags()

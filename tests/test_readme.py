@@ -10,6 +10,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+from conftest import TINY_FIT
 
 from jface import data, io
 from jface.cli import main
@@ -85,7 +86,7 @@ ROWS = {
         ["sim/wrinkles.npz", "sim/params.json", "sim/wrinkles.png"],
     ),
     "wrinkles render": (
-        ["wrinkles", "render", "--simulation", "sim", "--out", "w.exr", "--size", "128"],
+        ["wrinkles", "render", "--simulation", "sim", "--out", "w.exr", "--size", "64"],
         ["w.exr", "w.png"],
     ),
     "wrinkles extract": (
@@ -93,8 +94,7 @@ ROWS = {
         ["p.json", "p_pores.json"],
     ),
     "wrinkles fit": (
-        ["wrinkles", "fit", "w.exr", "--out", "fit.json", "--agents", "4", "--iters", "2",
-         "--trials", "1", "--d-levels", "2", "--steps", "5", "--refine-steps", "0"],
+        ["wrinkles", "fit", "w.exr", "--out", "fit.json", *TINY_FIT, "--iters", "2"],
         ["fit.json", "fit_convergence.png", "fit_target_fit.png"],
     ),
     "faces synth": (

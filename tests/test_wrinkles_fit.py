@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import TINY_FIT
 
 from jface._compilation import kept_arrays, kept_path
 from jface.cli import main
@@ -42,14 +43,19 @@ def target():
 
 
 @pytest.fixture(scope="module")
+def layout():
+    """The fits' pores and graphs (every fit's, whatever its seed)."""
+    return _layout(_fit.layout_key(), (64, 64), D_RANGE, SMALL["n_steps"], SMALL["d_levels"])
+
+
+@pytest.fixture(scope="module")
 def fit(target):
     return fit_wrinkles(
         jax.random.key(0), target, names=NAMES, base=TRUE, n_trials=1, refine_steps=4, **SMALL
     )
 
 
-def test_recovers_deposit_and_orientation(fit, target):
-    layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 30, 4)
+def test_recovers_deposit_and_orientation(fit, target, layout):
     loss = eqx.filter_jit(_SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, NAMES))
     # the truth and α_deposit 0.3 / 0.9 with α_θ at truth (one compiled call)
     points = jnp.array([[0.6, 1.0], [0.3, 1.0], [0.9, 1.0]], jnp.float32)
@@ -67,9 +73,8 @@ def test_recovers_deposit_and_orientation(fit, target):
     assert abs((theta - 1.0 + np.pi / 2) % np.pi - np.pi / 2) < 0.4
 
 
-def test_refinement_never_worsens_and_history_is_monotone(fit, target):
+def test_refinement_never_worsens_and_history_is_monotone(fit, target, layout):
     # the fit's answer with the widest α_wrinkle-width, refined by gradient on that field
-    layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 30, 4)
     names = (*NAMES, "1.wrinkle_width")
     x = jnp.concatenate([fit.swarm.params, jnp.array([0.6], jnp.float32)])
     start = _SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, names)(x[None])[0]
@@ -82,11 +87,10 @@ def test_refinement_never_worsens_and_history_is_monotone(fit, target):
     assert float(fit.levels[1].d) == pytest.approx(float(fit.levels[0].d) / 2)
 
 
-def test_size_classes_give_the_whole_grids_losses(target):
+def test_size_classes_give_the_whole_grids_losses(target, layout):
     """The swarm evaluates each agent on its α_d's size class (the graphs cut to that class's
     slots): the same losses as drawn on the whole grid's slots, with fewer slots for the sparse
     class."""
-    layout = _layout(jax.random.split(jax.random.key(0), 3)[0], (64, 64), D_RANGE, 30, 4)
     dense, sparse = layout.slots
     assert 0 < layout.split < 4
     assert sparse[1] < dense[1]  # the finer level's pores fewer where α_d is larger
@@ -127,13 +131,15 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     kwargs = dict(SMALL, n_trials=3, names=NAMES, base=TRUE, refine_steps=0)
     runs = [fit_wrinkles(jax.random.key(0), target, **kwargs) for _ in range(2)]
     assert np.array_equal(runs[0].swarm.params, runs[1].swarm.params)
-    assert len(looked_up) == 1  # the second fit (same key, size and settings) kept the layout
+    assert len(looked_up) == 1  # the second fit (same size and settings) kept the layout
     # rungs of n_epochs // 8 = 1 epoch: three trials run one, the better two another, the best
     # goes on to n_epochs = 10 unless it stalls (10 epochs without a 0.1 % gain)
     epochs = sorted(runs[0].epochs_run)
     assert epochs[:2] == [1, 2] and 2 < epochs[2] <= 10
-    paper = fit_wrinkles(jax.random.key(0), target, mode="paper", **kwargs)
+    paper = fit_wrinkles(jax.random.key(1), target, mode="paper", **kwargs)
     assert paper.epochs_run == (10, 10, 10)
+    assert len(looked_up) == 1  # another seed: the same layout (and so the same programs)
+    assert not np.array_equal(paper.swarm.trial_params, runs[0].swarm.trial_params)
 
 
 def test_interrupt_keeps_the_best_so_far(target):
@@ -166,9 +172,7 @@ def test_cli_interrupt_writes_the_best_so_far(tmp_path, monkeypatch, target):
     monkeypatch.setattr(cli_fit, "fit_wrinkles", interrupted_fit)
     np.save(tmp_path / "patch.npy", target)
     out = tmp_path / "p.json"
-    argv = ["fit", str(tmp_path / "patch.npy"), "--out", str(out), "--agents", "4", "--iters",
-            "3", "--trials", "1", "--steps", "10", "--d-levels", "2", "--d-range", "0.04", "0.05",
-            "--refine-steps", "0"]  # fmt: skip
+    argv = ["fit", str(tmp_path / "patch.npy"), "--out", str(out), *TINY_FIT, "--iters", "3"]
     assert main(argv) == 130
     document = json.loads(out.read_text())
     assert document["fit"]["interrupted"] is True and document["fit"]["epochs_run"] == [1]

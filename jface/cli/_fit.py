@@ -304,7 +304,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     units = _units(args.patch_size, patch.shape)
     total = args.trials * args.epochs if args.paper else _halving_epochs(args.trials, args.epochs)
     # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², plus about 2 min of fixed
-    # cost (1 min when the compiled programs of an earlier run with this seed are cached)
+    # cost (1 min when an earlier fit of this patch size left its compiled programs cached)
     minutes = (total * args.agents * 0.16 * patch.size / 256**2 + 120) / 60
     print(
         f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "
