@@ -226,6 +226,32 @@ def test_packed_bins_and_passes_as_needed_draw_the_same_map(level):
     assert float(jnp.std(static)) > 0.01
 
 
+def test_passes_beyond_the_need_change_neither_map_nor_gradient(level):
+    """A tile batch skips the passes beyond its fullest tile: a static bound four times the need
+    (as the fit's refinement sets one bound for every answer) gives the same map and the same
+    gradient, bit for bit."""
+    graph, weights, params = level
+    key = jax.random.key(5)
+    prims = primitives(key, graph, weights, params, (N, N))
+    sizes = {"tile": 8, "bulge": True, "periodic": True}
+    span = needed_span(prims, (N, N), **sizes)
+    bins = bin_primitives(prims, (N, N), span=span, **sizes)
+    need = -(-int(jnp.max(bins.count)) // 4)
+
+    def drawn(passes):
+        opts = DrawOptions(tile=8, capacity=4, span=span, passes=passes)
+
+        def energy(scale):  # through the strengths of every wrinkle and pore
+            scaled = prims._replace(strength=scale * prims.strength)
+            return jnp.sum(render(key, scaled, bins, params, (N, N), opts, True) ** 2)
+
+        return jax.jit(jax.value_and_grad(energy))(jnp.float32(1.0))
+
+    exact, bound = drawn(need), drawn(4 * need)
+    assert need > 1 and float(exact[1]) != 0.0
+    np.testing.assert_array_equal(bound, exact)
+
+
 def test_jit_eager_vmap_determinism_and_grad(level):
     graph, weights, params = level
     key = jax.random.key(1)

@@ -13,9 +13,10 @@ The rasteriser bins primitives to square screen tiles (each primitive to the at 
 ``span × span`` tiles its bounding box touches: the pairs are enumerated and sorted by tile), then
 evaluates each tile's pixels against its primitives in ``passes`` chunks of ``capacity`` with the
 blend accumulated additively (as in the paper's three-channel framebuffer, with a running maximum
-for float32 range), so any resolution works with memory bounded by the tile batch. A static
-number of passes keeps the map reverse-differentiable; without gradients (:func:`render` with
-``passes=None``) each tile batch takes only the passes its fullest tile needs.
+for float32 range), so any resolution works with memory bounded by the tile batch. Each tile
+batch draws the passes its fullest tile needs; a static bound on them (``passes``) keeps the map
+reverse-differentiable (the passes beyond the need are skipped), ``passes=None`` in
+:func:`render` does without one (no gradients).
 """
 
 from __future__ import annotations
@@ -416,42 +417,59 @@ def _blend(acc: _Acc, beta, n_hat):
 def _render_tiles(
     prims, bins, tile_ids, shape, *, tile, capacity, passes, bulge, periodic, beta, n_hat
 ):
-    """Blended displacement (Eq. 11) of the given tiles, ``(len(tile_ids), tile, tile)``."""
+    """Blended displacement (Eq. 11) of the given tiles, ``(len(tile_ids), tile, tile)``.
+
+    The tiles go in batches (about 1 Mi fragments a pass), and a batch takes the passes its
+    fullest tile needs: a ``while_loop`` (``passes=None``), or up to a static ``passes`` in a
+    ``scan`` that skips the passes beyond (``lax.cond``), which keeps the map
+    reverse-differentiable at the cost of the passes drawn, not of the bound.
+    """
     gx = -(-shape[1] // tile)
     h, w = shape
     offs = jnp.arange(tile, dtype=jnp.float32)
 
-    def one(tid):
+    def pixels(tid):
         ty, tx = tid // gx, tid % gx
         ys = ((ty * tile).astype(jnp.float32) + offs + 0.5) / h
         xs = ((tx * tile).astype(jnp.float32) + offs + 0.5) / w
-        q = jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
-        count, start = bins.count[tid], bins.start[tid]
-        zero = jnp.zeros(tile * tile, jnp.float32)
+        return jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
 
-        def body(acc, c):
-            slot = c * capacity + jnp.arange(capacity, dtype=jnp.int32)
-            idx = bins.order[jnp.minimum(start + slot, bins.order.shape[0] - 1)]
-            chunk = jax.tree.map(lambda a: a[idx], prims)
-            chunk = chunk._replace(valid=chunk.valid & (slot < count))
-            s, covered = _fragments(chunk, q, periodic, bulge)
-            return _accumulate(acc, s, covered, beta), None
+    def one_pass(acc, q, count, start, c):  # primitives c·capacity… of one tile
+        slot = c * capacity + jnp.arange(capacity, dtype=jnp.int32)
+        idx = bins.order[jnp.minimum(start + slot, bins.order.shape[0] - 1)]
+        chunk = jax.tree.map(lambda a: a[idx], prims)
+        chunk = chunk._replace(valid=chunk.valid & (slot < count))
+        s, covered = _fragments(chunk, q, periodic, bulge)
+        return _accumulate(acc, s, covered, beta)
 
-        init = _Acc(*[zero] * 7)
-        if passes is None:  # as many passes as the tile needs (batched: its fullest tile)
+    def batch(tids):
+        q, count, start = jax.vmap(pixels)(tids), bins.count[tids], bins.start[tids]
+        fullest = jnp.max(count)
 
-            def step(state):
-                c, acc = state
-                return c + 1, body(acc, c)[0]
+        def drawn(c, acc):  # pass c of every tile of the batch
+            return jax.vmap(one_pass, (0, 0, 0, 0, None))(acc, q, count, start, c)
 
-            _, acc = lax.while_loop(lambda st: st[0] * capacity < count, step, (jnp.int32(0), init))
-        else:  # a static number of passes keeps the map reverse-differentiable; the gradient
-            # recomputes each pass's fragments rather than keeping them all (memory-bound)
+        init = _Acc(*[jnp.zeros((tids.shape[0], tile * tile), jnp.float32)] * 7)
+        if passes is None:
+            _, acc = lax.while_loop(
+                lambda st: st[0] * capacity < fullest,
+                lambda st: (st[0] + 1, drawn(*st)),
+                (jnp.int32(0), init),
+            )
+        else:  # the gradient recomputes each pass's fragments rather than keeping them all
+
+            def body(acc, c):
+                skip = c * capacity >= fullest
+                return lax.cond(skip, lambda a: a, lambda a: drawn(c, a), acc), None
+
             acc, _ = lax.scan(jax.checkpoint(body), init, jnp.arange(passes, dtype=jnp.int32))
-        return _blend(acc, beta, n_hat).reshape(tile, tile)
+        return jax.vmap(lambda a: _blend(a, beta, n_hat))(acc).reshape(-1, tile, tile)
 
-    batch = max(1, (1 << 20) // (tile * tile * capacity))
-    return lax.map(one, tile_ids, batch_size=min(batch, tile_ids.shape[0]))
+    n = tile_ids.shape[0]
+    size = min(max(1, (1 << 20) // (tile * tile * capacity)), n)
+    padded = -(-n // size) * size  # the last batch repeats the last tile
+    ids = jnp.concatenate([tile_ids, jnp.broadcast_to(tile_ids[-1:], (padded - n,))])
+    return lax.map(batch, ids.reshape(-1, size)).reshape(padded, tile, tile)[:n]
 
 
 def _pixel_uv(shape, rows):

@@ -795,13 +795,21 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
     return refined, loss, image_refined
 
 
+#: The refinement's static drawing passes at least (512 primitives per tile). The drawing skips
+#: the passes beyond a tile batch's fullest tile, so the bound costs memory (the gradient keeps
+#: every pass's accumulators: about 60 MB a level at 256²), not time; one compiled refinement per
+#: size class then serves almost every answer (with passes from the answer's fullest tile, a
+#: fit of another patch compiled the refinement again, 35 s).
+_REFINE_PASSES = 32
+
+
 def _refine_passes(fullest: int) -> int:
     """Static passes (differentiable drawing) for a start whose fullest tile holds ``fullest``
-    primitives: 1.5-3x headroom, so that a step whose wider fields need more mostly stays
-    drawable (a step beyond is inf and the line search backs off), and a power of two, so that
-    refinements of other patches mostly share one compiled program."""
+    primitives: :data:`_REFINE_PASSES`, or for a fuller tile 1.5-3x headroom (a step whose wider
+    fields need more mostly stays drawable; a step beyond is inf and the line search backs off)
+    rounded to a power of two."""
     need = max(1, -(-3 * fullest // (2 * _CAPACITY)))
-    return 1 << (need - 1).bit_length()
+    return max(_REFINE_PASSES, 1 << (need - 1).bit_length())
 
 
 @eqx.filter_jit
