@@ -466,8 +466,9 @@ def _render_tiles(
         return jax.vmap(lambda a: _blend(a, beta, n_hat))(acc).reshape(-1, tile, tile)
 
     n = tile_ids.shape[0]
-    size = min(max(1, (1 << 20) // (tile * tile * capacity)), n)
-    padded = -(-n // size) * size  # the last batch repeats the last tile
+    batches = -(-n // max(1, (1 << 20) // (tile * tile * capacity)))
+    size = -(-n // batches)  # even batches: fewer than one tile a batch repeats the last tile
+    padded = batches * size
     ids = jnp.concatenate([tile_ids, jnp.broadcast_to(tile_ids[-1:], (padded - n,))])
     return lax.map(batch, ids.reshape(-1, size)).reshape(padded, tile, tile)[:n]
 
