@@ -90,7 +90,7 @@ def test_refinement_never_worsens_and_history_is_monotone(fit, target, layout):
 def test_size_classes_give_the_whole_grids_losses(target, layout):
     """The swarm evaluates each agent on its α_d's size class (the graphs cut to that class's
     slots): the same losses as drawn on the whole grid's slots, with fewer slots for the sparse
-    class."""
+    class, and as drawn with the classes merged into one."""
     dense, sparse = layout.slots
     assert 0 < layout.split < 4
     assert sparse[1] < dense[1]  # the finer level's pores fewer where α_d is larger
@@ -105,6 +105,11 @@ def test_size_classes_give_the_whole_grids_losses(target, layout):
         return _fit._loss(synthesize(key, _levels_from(x, names, TRUE), layout), stats)
 
     np.testing.assert_allclose(classed, [whole(a) for a in x], rtol=1e-5)
+    # one class over the whole grid (small swarms, the refinement): the same losses
+    merged = layout.merged()
+    assert merged.slots == (tuple(map(tuple, np.maximum(dense, sparse).tolist())),)
+    assert set(np.asarray(jax.vmap(merged.size_class)(x[:, 0])).tolist()) == {0}
+    np.testing.assert_allclose(_SwarmLoss(key, stats, TRUE, merged, names)(x), classed, rtol=1e-5)
 
 
 @pytest.mark.parametrize(
@@ -187,19 +192,22 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
 
 
 def test_layout_programs_are_cacheable_and_report_their_errors():
-    """The α_d grid's program holds no host callback (JAX's persistent compilation cache keeps
+    """The α_d grid's programs hold no host callback (JAX's persistent compilation cache keeps
     no program that has one), so its sampling and graph errors come back as flags, which the
     fit raises as clear errors."""
     keys = tuple(jax.random.split(jax.random.key(0)))
     ranges = ((0.04, 0.05), (0.02, 0.025))
-    dense, flags = _fit._pores(keys, 0.04, ranges)
-    assert not any(bool(f) for f in flags.values())
-    caps = (dense[0].capacity, dense[1].capacity)
-    specs = tuple(_fit.covering_spec((p,), r) for p, r in zip(dense, ranges, strict=True))
-    args = (keys, jnp.asarray([0.04, 0.05]), ranges, caps, specs)
-    jaxpr = str(jax.make_jaxpr(_fit._graphs, static_argnums=(2, 3, 4))(*args))
-    assert "callback" not in jaxpr
-    _, pore_flags, graph_flags = _fit._graphs(*args)
+    caps = _fit._capacities(0.04)
+    args = (keys, jnp.asarray([0.04, 0.05]), ranges, caps)
+    assert "callback" not in str(jax.make_jaxpr(_fit._grid_pores, static_argnums=(2, 3))(*args))
+    pores, pore_flags = _fit._grid_pores(*args)
+    specs = tuple(
+        _fit.covering_spec([jax.tree.map(lambda a: a[0], p)], r)
+        for p, r in zip(pores, ranges, strict=True)
+    )
+    jaxpr = jax.make_jaxpr(_fit._grid_graphs, static_argnums=1)(pores, specs)
+    assert "callback" not in str(jaxpr)
+    _, graph_flags = _fit._grid_graphs(pores, specs)
     assert not any(np.any(np.asarray(f)) for f in jax.tree.leaves((pore_flags, graph_flags)))
     _, flags = _fit._pores(keys, 0.04, ranges, (16, caps[1]))  # too few slots
     with pytest.raises(ValueError, match="more pores than capacity"):

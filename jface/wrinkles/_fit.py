@@ -79,6 +79,10 @@ D_LEVELS = {"fast": 16, "paper": 32}
 REFINE_STEPS = {"fast": 10, "paper": 30}
 #: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
 STALL_TOLERANCE, PATIENCE = 1e-3, 10
+#: Swarms of fewer evaluations draw every agent with one program: the second size class saves
+#: about 0.06 s an evaluation but costs about 12 s of compile (256², two cores), so it repays
+#: itself from about 200 evaluations on (a fit of 50 agents, 100 epochs, 3 trials has 15,150).
+SPLIT_FROM = 200
 
 
 class WrinkleFit(eqx.Module):
@@ -120,6 +124,8 @@ class _Layout(eqx.Module):
     ``split`` (the index that minimises the mean slots over the grid), and ``slots`` holds each
     class's node and edge slots per level: :meth:`narrowed` cuts the graphs to a class, and the
     swarm evaluates each agent with its class's program (a quarter less time per evaluation).
+    :meth:`merged` makes it one class again (one program to compile: the refinement, small
+    swarms).
     """
 
     d_values: Float[Array, " K"]
@@ -154,6 +160,13 @@ class _Layout(eqx.Module):
         slots = self.slots[size_class]
         graphs = tuple(cut_slots(g, *s) for g, s in zip(self.graphs, slots, strict=True))
         return dataclasses.replace(self, graphs=graphs)
+
+    def merged(self) -> _Layout:
+        """This layout as one size class, every α_d on the whole grid's slots: one compiled
+        program draws any agent (the refinement; swarms too small to repay a second class's
+        compile)."""
+        whole = tuple(tuple(map(max, *level)) for level in zip(*self.slots, strict=True))
+        return dataclasses.replace(self, split=len(self.d_values), slots=(whole,))
 
 
 # screen tile (pixels) and primitives per pass of the swarm's draws: 8-pixel tiles draw a 256²
@@ -248,13 +261,13 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     lo, hi = d_range
     ranges = ((lo, hi), (lo / 2, hi / 2))
     keys = tuple(jax.random.split(key))
-    dense = _checked(*_pores(keys, lo, ranges), SAMPLING_ERRORS)
-    caps = (dense[0].capacity, dense[1].capacity)
-    sparse = _checked(*_pores(keys, hi, ranges, caps), SAMPLING_ERRORS)
-    specs = tuple(covering_spec((dense[i], sparse[i]), ranges[i]) for i in range(2))
+    caps = _capacities(lo)
     d_values = np.linspace(lo, hi, d_levels, dtype=np.float32)
-    graphs, pore_flags, graph_flags = _graphs(keys, jnp.asarray(d_values), ranges, caps, specs)
+    pores, pore_flags = _grid_pores(keys, jnp.asarray(d_values), ranges, caps)
     _checked(None, pore_flags, SAMPLING_ERRORS)
+    ends = [jax.tree.map(lambda a, j=j: a[j], pores) for j in (0, -1)]  # densest, sparsest
+    specs = tuple(covering_spec([e[i] for e in ends], ranges[i]) for i in range(2))
+    graphs, graph_flags = _grid_graphs(pores, specs)
     for flags, spec in zip(graph_flags, specs, strict=True):
         _checked(None, flags, graph_errors(spec))
     graphs = tuple(trim_batch(g) for g in graphs)
@@ -294,12 +307,15 @@ def _size_classes(graphs: tuple[PoreGraph, PoreGraph]):
     return split, (slots(0, split), slots(split, k))
 
 
-def _pores(keys, d, ranges, caps=(None, None)):
+def _capacities(d) -> tuple[int, int]:
+    """The two levels' pore capacities at α_d (packing bounds, as sample_pores sizes them)."""
+    first = default_capacity(d)
+    return first, default_capacity(d / 2, initial=first)
+
+
+def _pores(keys, d, ranges, caps):
     """The two levels' pores of α_d (level 2 at half the distance, starting from level 1's), and
     the sampling's error flags of either level."""
-    if caps[0] is None:  # packing bounds, as sample_pores sizes them
-        first = default_capacity(d)
-        caps = (first, default_capacity(d / 2, initial=first))
     d = jnp.asarray(d, jnp.float32)
     p1, f1, _ = sampled(keys[0], d, None, None, caps[0], ranges[0], True)
     p2, f2, _ = sampled(keys[1], d / 2, None, p1, caps[1], ranges[1], True)
@@ -314,21 +330,25 @@ def _checked(value, flags: dict, messages: dict):
     return value
 
 
-@functools.partial(jax.jit, static_argnums=(2, 3, 4))
-def _graphs(keys, d_values, ranges, caps, specs):
-    """Both levels' graphs for every α_d (one compile for the whole grid), and the error flags
-    of the pores and of the graphs per α_d (returned: a program that raises holds host
-    callbacks, which the persistent compilation cache does not keep). The pores are sampled as
-    one batch (the sampling is a long loop of small steps), the graphs built one after the
-    other (a batch would hold every grid value's crossing search in memory at once)."""
-    pores, pore_flags = jax.vmap(lambda d: _pores(keys, d, ranges, caps))(d_values)
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _grid_pores(keys, d_values, ranges, caps):
+    """Both levels' pores for every α_d, sampled as one batch (the sampling is a long loop of
+    small steps), and their error flags per α_d (returned: a program that raises holds host
+    callbacks, which the persistent compilation cache does not keep)."""
+    return jax.vmap(lambda d: _pores(keys, d, ranges, caps))(d_values)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _grid_graphs(pores, specs):
+    """Both levels' graphs for every α_d (one compile for the whole grid) and their error flags,
+    built one after the other (a batch would hold every grid value's crossing search in memory
+    at once)."""
 
     def one(levels):
         out = [built(p, spec)[:2] for p, spec in zip(levels, specs, strict=True)]
         return tuple(zip(*out, strict=True))  # (graphs, flags), a pair per level
 
-    graphs, graph_flags = jax.lax.map(one, pores)
-    return graphs, pore_flags, graph_flags
+    return jax.lax.map(one, pores)
 
 
 def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int, int]:
@@ -660,6 +680,9 @@ def fit_wrinkles(
     settings = swarm_settings(_checks.integer(n_agents, "n_agents", low=3), batched=True)
     k_sim, k_swarm = jax.random.split(key)
     layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels)
+    whole = layout.merged()
+    if settings.n_agents * (n_epochs + 1) * n_trials < SPLIT_FROM:
+        layout = whole
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
     # one swarm per trial, each with its own simulation key; all share one compiled loss
@@ -683,7 +706,8 @@ def fit_wrinkles(
     best = int(swarm.best_trial)
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
-    layout = layout.narrowed(int(layout.size_class(levels[0].d)))  # as the swarm drew it
+    # one refinement program for every answer (the whole grid's slots)
+    layout = whole.narrowed(0)
     if interrupted:
         _, levels, _, image, _ = _refine_start(sim_key, levels, layout, target_stats)
         return WrinkleFit(
@@ -785,7 +809,7 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
     sims, levels, fullest, image, _ = _refine_start(sim_key, levels, layout, target_stats)
     if not fields or steps == 0:
         return levels, start, image
-    passes = tuple(_refine_passes(int(c)) for c in fullest)
+    passes = tuple(_refine_passes(int(c), level) for level, c in enumerate(fullest))
     refined = _refine_solve(sim_key, sims, levels, layout, target_stats, fields, passes, steps)
     # the answer's map and loss from the start's program (a draw in the solve's program would
     # add a third of its compile time); the simulation it repeats is the same
@@ -795,21 +819,22 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
     return refined, loss, image_refined
 
 
-#: The refinement's static drawing passes at least (512 primitives per tile). The drawing skips
-#: the passes beyond a tile batch's fullest tile, so the bound costs memory (the gradient keeps
-#: every pass's accumulators: about 60 MB a level at 256²), not time; one compiled refinement per
-#: size class then serves almost every answer (with passes from the answer's fullest tile, a
-#: fit of another patch compiled the refinement again, 35 s).
-_REFINE_PASSES = 32
+#: The refinement's static drawing passes at least, per level (256 and 128 primitives per
+#: tile), so that most answers share one compiled refinement (with passes from each answer's
+#: fullest tile, a fit of another patch mostly compiled it again, 35 s); the 256² exploratory
+#: fits of `brick` and `gravel` needed (8, 8) and (16, 8). The forward draw skips the passes
+#: beyond a tile batch's fullest tile, but its gradient pays for every pass: 10 BFGS steps from
+#: one 256² start took 4.8 s with 4 passes a level, 6.7 s with 8 and 14.3 s with 32 (two cores).
+_REFINE_PASSES = (16, 8)
 
 
-def _refine_passes(fullest: int) -> int:
-    """Static passes (differentiable drawing) for a start whose fullest tile holds ``fullest``
-    primitives: :data:`_REFINE_PASSES`, or for a fuller tile 1.5-3x headroom (a step whose wider
-    fields need more mostly stays drawable; a step beyond is inf and the line search backs off)
-    rounded to a power of two."""
+def _refine_passes(fullest: int, level: int) -> int:
+    """Static passes (differentiable drawing) of ``level`` for a start whose fullest tile holds
+    ``fullest`` primitives: :data:`_REFINE_PASSES`, or for a fuller tile 1.5-3x headroom (a step
+    whose wider fields need more mostly stays drawable; a step beyond is inf and the line search
+    backs off) rounded to a power of two."""
     need = max(1, -(-3 * fullest // (2 * _CAPACITY)))
-    return max(_REFINE_PASSES, 1 << (need - 1).bit_length())
+    return max(_REFINE_PASSES[level], 1 << (need - 1).bit_length())
 
 
 @eqx.filter_jit
