@@ -460,7 +460,11 @@ def _render_tiles(
 
             def body(acc, c):
                 skip = c * capacity >= fullest
-                return lax.cond(skip, lambda a: a, lambda a: drawn(c, a), acc), None
+                # checkpointed, the drawing branch's residuals are its inputs alone: the cond
+                # fills the residuals of the branch not taken with zeros, so a skipped pass
+                # would otherwise cost the zeros of every pass's fragments in the gradient
+                draw = jax.checkpoint(lambda a: drawn(c, a))
+                return lax.cond(skip, lambda a: a, draw, acc), None
 
             acc, _ = lax.scan(jax.checkpoint(body), init, jnp.arange(passes, dtype=jnp.int32))
         return jax.vmap(lambda a: _blend(a, beta, n_hat))(acc).reshape(-1, tile, tile)

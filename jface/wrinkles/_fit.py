@@ -809,7 +809,7 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
     sims, levels, fullest, image, _ = _refine_start(sim_key, levels, layout, target_stats)
     if not fields or steps == 0:
         return levels, start, image
-    passes = tuple(_refine_passes(int(c), level) for level, c in enumerate(fullest))
+    passes = tuple(_refine_passes(int(c)) for c in fullest)
     refined = _refine_solve(sim_key, sims, levels, layout, target_stats, fields, passes, steps)
     # the answer's map and loss from the start's program (a draw in the solve's program would
     # add a third of its compile time); the simulation it repeats is the same
@@ -819,22 +819,22 @@ def _refine(sim_key, levels, start, layout, target_stats, names, steps):
     return refined, loss, image_refined
 
 
-#: The refinement's static drawing passes at least, per level (256 and 128 primitives per
-#: tile), so that most answers share one compiled refinement (with passes from each answer's
-#: fullest tile, a fit of another patch mostly compiled it again, 35 s); the 256² exploratory
-#: fits of `brick` and `gravel` needed (8, 8) and (16, 8). The forward draw skips the passes
-#: beyond a tile batch's fullest tile, but its gradient pays for every pass: 10 BFGS steps from
-#: one 256² start took 4.8 s with 4 passes a level, 6.7 s with 8 and 14.3 s with 32 (two cores).
-_REFINE_PASSES = (16, 8)
+#: The refinement's static drawing passes at least (512 primitives per tile), so that almost
+#: every answer shares one compiled refinement (with passes from each answer's fullest tile, a
+#: fit of another patch mostly compiled it again, 35 s). The drawing skips the passes beyond a
+#: tile batch's fullest tile, in its gradient too, so the bound costs memory (the gradient keeps
+#: every pass's accumulators: about 60 MB a level at 256²), not time: 10 BFGS steps from one 256²
+#: start take 3.8 s with 4 passes and 4.0 s with 32 (two cores).
+_REFINE_PASSES = 32
 
 
-def _refine_passes(fullest: int, level: int) -> int:
-    """Static passes (differentiable drawing) of ``level`` for a start whose fullest tile holds
-    ``fullest`` primitives: :data:`_REFINE_PASSES`, or for a fuller tile 1.5-3x headroom (a step
-    whose wider fields need more mostly stays drawable; a step beyond is inf and the line search
-    backs off) rounded to a power of two."""
+def _refine_passes(fullest: int) -> int:
+    """Static passes (differentiable drawing) for a start whose fullest tile holds ``fullest``
+    primitives: :data:`_REFINE_PASSES`, or for a fuller tile 1.5-3x headroom (a step whose wider
+    fields need more mostly stays drawable; a step beyond is inf and the line search backs off)
+    rounded to a power of two."""
     need = max(1, -(-3 * fullest // (2 * _CAPACITY)))
-    return max(_REFINE_PASSES[level], 1 << (need - 1).bit_length())
+    return max(_REFINE_PASSES, 1 << (need - 1).bit_length())
 
 
 @eqx.filter_jit
