@@ -109,7 +109,9 @@ def test_size_classes_give_the_whole_grids_losses(target, layout):
     merged = layout.merged()
     assert merged.slots == (tuple(map(tuple, np.maximum(dense, sparse).tolist())),)
     assert set(np.asarray(jax.vmap(merged.size_class)(x[:, 0])).tolist()) == {0}
-    np.testing.assert_allclose(_SwarmLoss(key, stats, TRUE, merged, names)(x), classed, rtol=1e-5)
+    merged_losses = _SwarmLoss(key, stats, TRUE, merged, names)(x.at[0, 0].set(jnp.nan))
+    np.testing.assert_allclose(merged_losses[1:], classed[1:], rtol=1e-5)
+    assert np.isnan(merged_losses[0])  # a non-finite α_d is undrawable
 
 
 @pytest.mark.parametrize(

@@ -523,9 +523,16 @@ class _SwarmLoss(eqx.Module):
             for c in range(len(self.layout.slots))
         ]
 
+        def undrawable(levels):
+            return jnp.zeros(self.layout.size, jnp.float32), jnp.ones((), bool)
+
         def one(x):
             levels = _levels_from(x, self.names, self.base)
-            image, bad = jax.lax.switch(self.layout.size_class(levels[0].d), classes, levels)
+            d = levels[0].d
+            # a non-finite α_d is undrawable; the branch also keeps one class a conditional,
+            # which draws an agent the same way whatever the number of agents in a share
+            which = jnp.where(jnp.isfinite(d), self.layout.size_class(d), len(classes))
+            image, bad = jax.lax.switch(which, [*classes, undrawable], levels)
             return jnp.where(bad, jnp.nan, _loss(image, self.target))
 
         return jax.lax.map(one, xs)
