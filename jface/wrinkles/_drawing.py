@@ -264,26 +264,39 @@ def needed_span(
     prims: Primitives, shape: tuple[int, int], *, tile: int, bulge: bool, periodic: bool
 ) -> int:
     """Smallest ``span`` that bins these (concrete) primitives without overflow."""
-    return int(_tiles_touched(prims, shape, tile, bulge, periodic).max(initial=1))
+    n = np.asarray(_tiles_touched(prims, shape, tile, bulge, periodic)[1])
+    return int(n.max(initial=1))
 
 
 def needed_entries(
     prims: Primitives, shape: tuple[int, int], *, tile: int, bulge: bool, periodic: bool
 ) -> int:
     """Number of (primitive, tile) pairs these (concrete) primitives make when binned."""
-    return int(np.sum(np.prod(_tiles_touched(prims, shape, tile, bulge, periodic), -1)))
+    return int(entries_of(prims, shape, tile=tile, bulge=bulge, periodic=periodic))
 
 
-def _tiles_touched(prims, shape, tile, bulge, periodic) -> np.ndarray:
-    """Tiles per axis ``(m, 2)`` each (concrete, valid) primitive touches; 0 for invalid ones."""
+def entries_of(
+    prims: Primitives, shape: tuple[int, int], *, tile: int, bulge: bool, periodic: bool
+) -> Array:
+    """:func:`needed_entries` as an array (also of traced primitives, e.g. inside a program
+    that sizes the bins of many draws at once)."""
+    n = _tiles_touched(prims, shape, tile, bulge, periodic)[1]
+    return jnp.sum(jnp.prod(n, -1))
+
+
+def _tiles_touched(prims, shape, tile, bulge, periodic) -> tuple[Array, Array]:
+    """First tile and tiles per axis ``(m, 2)`` each valid primitive touches (0 for invalid
+    ones); a box wider than a periodic map covers every tile once, and on a non-periodic map only
+    the visible tiles count."""
     first, n = _tile_range(*_bbox(prims, bulge), shape, tile)
-    grid = np.array([-(-shape[1] // tile), -(-shape[0] // tile)])
+    grid = jnp.array([-(-shape[1] // tile), -(-shape[0] // tile)], jnp.int32)
     if periodic:
-        n = np.minimum(np.asarray(n), grid)
+        n = jnp.minimum(n, grid)
     else:
-        last = np.minimum(np.asarray(first) + np.asarray(n) - 1, grid - 1)
-        n = np.maximum(last - np.maximum(np.asarray(first), 0) + 1, 0)
-    return np.where(np.asarray(prims.valid)[:, None], n, 0)
+        last = jnp.minimum(first + n - 1, grid - 1)
+        first = jnp.maximum(first, 0)
+        n = jnp.maximum(last - first + 1, 0)
+    return first, jnp.where(prims.valid[:, None], n, 0)
 
 
 def bin_primitives(
@@ -298,16 +311,9 @@ def bin_primitives(
     """
     m = prims.valid.shape[0]
     gy, gx = -(-shape[0] // tile), -(-shape[1] // tile)
-    first, n = _tile_range(*_bbox(prims, bulge), shape, tile)
-    grid = jnp.array([gx, gy], jnp.int32)
-    if periodic:  # a box wider than the map covers every tile once
-        n = jnp.minimum(n, grid)
-    else:  # clip to the image first: only visible tiles count
-        last = jnp.minimum(first + n - 1, grid - 1)
-        first = jnp.maximum(first, 0)
-        n = jnp.maximum(last - first + 1, 0)
-    overflow = jnp.any(prims.valid[:, None] & (n > span))
-    n = jnp.where(prims.valid[:, None], jnp.minimum(n, span), 0)
+    first, n = _tiles_touched(prims, shape, tile, bulge, periodic)
+    overflow = jnp.any(n > span)
+    n = jnp.minimum(n, span)
     pairs = n[:, 0] * n[:, 1]
     end = jnp.cumsum(pairs)
     entries = m * span * span if entries is None else entries

@@ -43,7 +43,7 @@ from jface.wrinkles._drawing import (
     N_HAT,
     DrawOptions,
     bin_primitives,
-    needed_entries,
+    entries_of,
     primitives,
     render,
 )
@@ -265,7 +265,8 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     d_values = np.linspace(lo, hi, d_levels, dtype=np.float32)
     pores, pore_flags = _grid_pores(keys, jnp.asarray(d_values), ranges, caps)
     _checked(None, pore_flags, SAMPLING_ERRORS)
-    ends = [jax.tree.map(lambda a, j=j: a[j], pores) for j in (0, -1)]  # densest, sparsest
+    # the densest and the sparsest, on the host (measured there, not drawn)
+    ends = [jax.tree.map(lambda a, j=j: np.asarray(a)[j], pores) for j in (0, -1)]
     specs = tuple(covering_spec([e[i] for e in ends], ranges[i]) for i in range(2))
     graphs, graph_flags = _grid_graphs(pores, specs)
     for flags, spec in zip(graph_flags, specs, strict=True):
@@ -357,28 +358,27 @@ def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int
     headroom (2x)."""
     entries = []
     ends = jnp.asarray([0, len(d_values) - 1])
-    for level, bulge in enumerate((True, False)):
+    for level in range(2):
         params = WrinkleParams(d=float(d_values[0]) / (1 + level), **_WIDE)
         ds = jnp.asarray(d_values)[ends] / (1 + level)
-        prims = _extremes(key, graphs[level], params, ends, ds, shape, n_samples[level], n_steps)
-        pairs = max(
-            needed_entries(one, shape, tile=_TILE, bulge=bulge, periodic=True)
-            for one in (jax.tree.map(lambda a, j=j: a[j], prims) for j in range(len(ends)))
+        pairs = _extremes(
+            key, graphs[level], params, ends, ds, shape, n_samples[level], n_steps, level == 0
         )
-        entries.append(_round_up(2 * max(pairs, 1)))
+        entries.append(_round_up(2 * max(int(jnp.max(pairs)), 1)))
     return tuple(entries)
 
 
-@functools.partial(jax.jit, static_argnums=(5, 6, 7))
-def _extremes(key, graphs, params, ends, ds, shape, n_samples, n_steps):
-    """Primitives of the grid's graphs ``ends``, each simulated with ``params`` at its α_d
-    ``ds`` (one compile per level)."""
+@functools.partial(jax.jit, static_argnums=(5, 6, 7, 8))
+def _extremes(key, graphs, params, ends, ds, shape, n_samples, n_steps, bulge):
+    """Binned pairs of the grid's graphs ``ends``, each simulated with ``params`` at its α_d
+    ``ds`` and drawn with the ``bulge`` profile or not (one compile per level)."""
 
     def one(end_d):
         g = jax.tree.map(lambda a: a[end_d[0]], graphs)
         p = _with(params, {"d": end_d[1]})
         w = simulate(key, g, p, n_steps=n_steps, n_samples=n_samples)
-        return primitives(key, g, w, p, shape)
+        prims = primitives(key, g, w, p, shape)
+        return entries_of(prims, shape, tile=_TILE, bulge=bulge, periodic=True)
 
     return jax.lax.map(one, (ends, ds))
 
@@ -715,8 +715,8 @@ def fit_wrinkles(
     levels = _levels_from(swarm.params, names, base)
     # one refinement program for every answer (the whole grid's slots)
     layout = whole.narrowed(0)
-    if interrupted:
-        _, levels, _, image, _ = _refine_start(sim_key, levels, layout, target_stats)
+    if interrupted:  # the answer as it is, unrefined
+        levels, _, image = _refine(sim_key, levels, swarm.loss, layout, target_stats, (), 0)
         return WrinkleFit(
             levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
         )
@@ -807,23 +807,26 @@ def _result(runs: list[_Trial], low, high) -> PSOResult:
 
 
 def _refine(sim_key, levels, start, layout, target_stats, names, steps):
-    """BFGS on the fitted drawing fields with the simulation result held fixed. ``start`` is the
-    swarm's loss of ``levels``: the answer is kept unless the refinement beats it (a redraw of
-    the same parameters can differ from the batched swarm's loss in the last bit)."""
+    """BFGS on the fitted drawing fields with the simulation result held fixed: the levels (α_d
+    snapped to the grid), their loss and map. ``start`` is the swarm's loss of ``levels``: the
+    answer is kept unless the refinement beats it (a redraw of the same parameters can differ
+    from the batched swarm's loss in the last bit)."""
     fields = tuple(
         (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
     )
-    sims, levels, fullest, image, _ = _refine_start(sim_key, levels, layout, target_stats)
-    if not fields or steps == 0:
-        return levels, start, image
-    passes = tuple(_refine_passes(int(c)) for c in fullest)
-    refined = _refine_solve(sim_key, sims, levels, layout, target_stats, fields, passes, steps)
-    # the answer's map and loss from the start's program (a draw in the solve's program would
-    # add a third of its compile time); the simulation it repeats is the same
-    _, refined, _, image_refined, loss = _refine_start(sim_key, refined, layout, target_stats)
-    if not bool(loss < start):  # keep the swarm's answer if the refinement did not help
-        return levels, start, image
-    return refined, loss, image_refined
+    steps = steps if fields else 0
+    passes = (_REFINE_PASSES,) * 2
+    while True:
+        drawn, fullest, images, losses = _refined(
+            sim_key, levels, layout, target_stats, fields, passes, steps
+        )
+        need = tuple(max(p, _refine_passes(int(c))) for p, c in zip(passes, fullest, strict=True))
+        if need == passes or steps == 0:
+            break
+        passes = need  # the start's fullest tile needs more (rare): solve again with enough
+    if steps == 0 or not bool(losses[1] < start):  # keep the swarm's answer unless beaten
+        return drawn[0], start, images[0]
+    return drawn[1], losses[1], images[1]
 
 
 #: The refinement's static drawing passes at least (512 primitives per tile), so that almost
@@ -845,18 +848,13 @@ def _refine_passes(fullest: int) -> int:
 
 
 @eqx.filter_jit
-def _refine_start(sim_key, levels, layout: _Layout, target_stats):
-    """The simulation of ``levels``, its fullest tile per level, its map and the map's loss
-    (inf where undrawable; one compile for the refinement's start and its answer)."""
+def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, steps):
+    """One program for the whole refinement: the simulation of ``levels`` (α_d snapped), BFGS
+    over the logits of ``fields`` (static) with the drawing's ``passes`` (static), and the map and
+    loss (inf where undrawable) of the start and of the answer, drawn by one compiled drawing
+    (a forward draw costs a third of the solve's compile time), with the start's fullest tile per
+    level. ``steps == 0``: the start alone."""
     sims, levels = _simulate(sim_key, levels, layout)
-    image, bad, fullest = _draw_checked(sim_key, sims, levels, layout)
-    return sims, levels, fullest, image, jnp.where(bad, jnp.inf, _loss(image, target_stats))
-
-
-@eqx.filter_jit
-def _refine_solve(sim_key, sims, levels, layout: _Layout, target_stats, fields, passes, steps):
-    """BFGS over the logits of ``fields`` (static), drawn with ``passes`` (static); the refined
-    levels."""
 
     def unpack(z):
         changes: tuple[dict, dict] = ({}, {})
@@ -875,7 +873,16 @@ def _refine_solve(sim_key, sims, levels, layout: _Layout, target_stats, fields, 
         u = jnp.clip((getattr(levels[lv], f) - lo) / (hi - lo), 1e-3, 1 - 1e-3)
         return jnp.log(u) - jnp.log1p(-u)
 
-    z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
-    solver = optx.BFGS(rtol=1e-4, atol=1e-6)
-    sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
-    return unpack(sol.value)
+    drawn = [levels]
+    if steps:
+        z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
+        solver = optx.BFGS(rtol=1e-4, atol=1e-6)
+        sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
+        drawn.append(unpack(sol.value))
+
+    def draw(lv):
+        image, bad, fullest = _draw_checked(sim_key, sims, lv, layout)
+        return image, jnp.where(bad, jnp.inf, _loss(image, target_stats)), jnp.stack(fullest)
+
+    images, losses, fullest = jax.lax.map(draw, jax.tree.map(lambda *xs: jnp.stack(xs), *drawn))
+    return drawn, fullest[0], images, losses

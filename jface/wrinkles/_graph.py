@@ -555,7 +555,7 @@ def covering_spec(
             p.positions, p.mask, p.count, k=base.k, deg=base.max_degree, grid=base.knn_grid,
             cell_cap=base.knn_cell_capacity, reach=base.knn_reach, periodic=p.periodic,
         )  # fmt: skip
-        degree = max(degree, int(jnp.max(jnp.sum(topo["half_mask"], -1))))
+        degree = max(degree, int(np.max(np.sum(topo["half_mask"], -1))))
         own = int(_midpoint_grid(topo["edge_length"], topo["edge_mask"], 1 << 30))
         grid, occupancy = max(grid, own), max(occupancy, _occupancy(p, topo, own))
     return base._replace(
@@ -617,8 +617,8 @@ def trim_batch(batch: PoreGraph) -> PoreGraph:
     every slot axis trimmed to what some graph of the batch uses, rounded up by at most an
     eighth (so batches of other seeds mostly get the same shapes and share compiled code)."""
     used = (
-        jnp.max(batch.node_count), jnp.max(batch.edge_count), jnp.max(batch.degree),
-        jnp.max(jnp.sum(batch.crossing_mask, -1)),
+        np.max(batch.node_count), np.max(batch.edge_count), np.max(batch.degree),
+        np.max(np.sum(batch.crossing_mask, -1)),
     )  # fmt: skip
     slots = (batch.node_mask.shape[-1], batch.edge_mask.shape[-1], batch.half_mask.shape[-1],
              batch.crossing_mask.shape[-1])  # fmt: skip
