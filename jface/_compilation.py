@@ -6,6 +6,7 @@ import functools
 import hashlib
 import os
 import tempfile
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -30,6 +31,22 @@ def keep_compiled_programs() -> bool:
     jax.config.update("jax_compilation_cache_dir", str(where))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
     return True
+
+
+def compile_ahead(jitted: Callable, *args) -> threading.Thread:
+    """Compile ``jitted`` (``jax.jit`` or ``equinox.filter_jit``) for ``args`` in a background
+    thread: XLA compiles outside the GIL, so this overlaps other work (on many cores, all of it).
+    Join the thread before calling ``jitted`` with arguments of those shapes, which then finds
+    the program compiled (called sooner, it would compile it a second time). Errors are left to
+    that call, which raises them."""
+
+    def compile_() -> None:
+        with contextlib.suppress(Exception):
+            jitted.lower(*args).compile()
+
+    thread = threading.Thread(target=compile_, name=f"compile {jitted}", daemon=True)
+    thread.start()
+    return thread
 
 
 def kept_arrays(

@@ -3,6 +3,7 @@ gradient refinement, the CLI, bad input. A small setting (64², α_d near its to
 the fitted pipeline compiles once per module."""
 
 import json
+import logging
 
 import equinox as eqx
 import jax
@@ -16,7 +17,15 @@ from jface.cli import main
 from jface.io import write_exr
 from jface.optim import texture_stats
 from jface.wrinkles import WrinkleParams, _fit, fit_wrinkles
-from jface.wrinkles._fit import _draw, _layout, _levels_from, _refine, _simulate, _SwarmLoss
+from jface.wrinkles._fit import (
+    _draw,
+    _drawing_fields,
+    _layout,
+    _levels_from,
+    _refine,
+    _simulate,
+    _SwarmLoss,
+)
 
 D_RANGE = (0.04, 0.05)
 # α_wrinkle-width is not fitted: its loss profile (the others at truth, two simulation keys) moves
@@ -79,12 +88,36 @@ def test_refinement_never_worsens_and_history_is_monotone(fit, target, layout):
     x = jnp.concatenate([fit.swarm.params, jnp.array([0.6], jnp.float32)])
     start = _SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, names)(x[None])[0]
     levels = _levels_from(x, names, TRUE)
-    _, loss, _ = _refine(fit.sim_key, levels, start, layout, texture_stats(target), names, 4)
+    fields = _drawing_fields(names)
+    _, loss, _ = _refine(fit.sim_key, levels, start, layout, texture_stats(target), fields, 4)
     assert float(loss) <= float(start)
     assert float(fit.loss) <= float(fit.swarm_loss)
     assert np.all(np.diff(np.asarray(fit.swarm.history), axis=1) <= 0)
     assert fit.fitted.shape == (64, 64) and np.all(np.isfinite(fit.fitted))
     assert float(fit.levels[1].d) == pytest.approx(float(fit.levels[0].d) / 2)
+
+
+def test_refinement_compiles_once_while_the_swarm_runs(target, caplog):
+    """The refinement's program is compiled ahead, in a background thread, for the types of the
+    answer the swarm will give: the fit then finds it compiled (one compile, not in the main
+    thread)."""
+    names = (*NAMES, "1.wrinkle_width")
+    small = dict(SMALL, n_agents=3, n_epochs=1)
+    # compiled here (not read from the persistent cache), each compile logged
+    settings = {"jax_enable_compilation_cache": False, "jax_log_compiles": True}
+    before = {name: getattr(jax.config, name) for name in settings}
+    try:
+        for name, value in settings.items():
+            jax.config.update(name, value)
+        with caplog.at_level(logging.WARNING):
+            fit = fit_wrinkles(jax.random.key(1), target, names=names, base=TRUE, n_trials=1,
+                               refine_steps=2, **small)  # fmt: skip
+    finally:
+        for name, value in before.items():
+            jax.config.update(name, value)
+    compiles = [r for r in caplog.records if "XLA compilation of jit(_refined)" in r.getMessage()]
+    assert len(compiles) == 1 and compiles[0].threadName != "MainThread"
+    assert float(fit.loss) <= float(fit.swarm_loss) and not fit.interrupted
 
 
 def test_size_classes_give_the_whole_grids_losses(target, layout):

@@ -34,7 +34,7 @@ from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float
 
 from jface import _checks
-from jface._compilation import kept_arrays
+from jface._compilation import compile_ahead, kept_arrays
 from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
 from jface.optim._pso import Swarm, swarm_epoch, swarm_settings, swarm_start
 from jface.optim._texture import _stats
@@ -699,6 +699,14 @@ def fit_wrinkles(
     ]
     low, high = low.astype(np.float32), high.astype(np.float32)
     search = (low, high, cyclic, settings)
+    # one refinement program for every answer (the whole grid's slots), compiled while the
+    # swarm runs
+    refining, fields = whole.narrowed(0), _drawing_fields(names)
+    refine_steps = refine_steps if fields else 0
+    if refine_steps:
+        like = _levels_from(jnp.asarray((low + high) / 2), names, base)  # the answer's types
+        refine_args = (refining, target_stats, fields, (_REFINE_PASSES,) * 2, refine_steps)
+        ahead = compile_ahead(_refined, sim_keys[0], like, *refine_args)
     interrupted = False
     try:
         if mode == "paper":
@@ -713,15 +721,15 @@ def fit_wrinkles(
     best = int(swarm.best_trial)
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
-    # one refinement program for every answer (the whole grid's slots)
-    layout = whole.narrowed(0)
     if interrupted:  # the answer as it is, unrefined
-        levels, _, image = _refine(sim_key, levels, swarm.loss, layout, target_stats, (), 0)
+        levels, _, image = _refine(sim_key, levels, swarm.loss, refining, target_stats, (), 0)
         return WrinkleFit(
             levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
         )
+    if refine_steps:
+        ahead.join()
     refined, loss, image = _refine(
-        sim_key, levels, swarm.loss, layout, target_stats, names, refine_steps
+        sim_key, levels, swarm.loss, refining, target_stats, fields, refine_steps
     )
     return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image, False, epochs)
 
@@ -806,14 +814,18 @@ def _result(runs: list[_Trial], low, high) -> PSOResult:
     )
 
 
-def _refine(sim_key, levels, start, layout, target_stats, names, steps):
-    """BFGS on the fitted drawing fields with the simulation result held fixed: the levels (α_d
+def _drawing_fields(names) -> tuple[tuple[int, str], ...]:
+    """(level index, field) of the fitted drawing parameters: what the refinement optimises."""
+    return tuple(
+        (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
+    )
+
+
+def _refine(sim_key, levels, start, layout, target_stats, fields, steps):
+    """BFGS on the drawing ``fields`` with the simulation result held fixed: the levels (α_d
     snapped to the grid), their loss and map. ``start`` is the swarm's loss of ``levels``: the
     answer is kept unless the refinement beats it (a redraw of the same parameters can differ
     from the batched swarm's loss in the last bit)."""
-    fields = tuple(
-        (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
-    )
     steps = steps if fields else 0
     passes = (_REFINE_PASSES,) * 2
     while True:
