@@ -4,6 +4,7 @@ jface's own arrays kept beside it (work that runs rather than compiles, e.g. a f
 import contextlib
 import functools
 import hashlib
+import logging
 import os
 import tempfile
 import threading
@@ -38,11 +39,14 @@ def compile_ahead(jitted: Callable, *args) -> threading.Thread:
     thread: XLA compiles outside the GIL, so this overlaps other work (on many cores, all of it).
     Join the thread before calling ``jitted`` with arguments of those shapes, which then finds
     the program compiled (called sooner, it would compile it a second time). Errors are left to
-    that call, which raises them."""
+    that call, which raises them. JAX settings local to the caller's thread (e.g. a
+    ``jax.default_device`` context) do not reach this thread: pass arguments that carry them."""
 
     def compile_() -> None:
-        with contextlib.suppress(Exception):
+        try:
             jitted.lower(*args).compile()
+        except Exception:  # the call itself raises it; here it only cost time
+            logging.getLogger(__name__).debug("compiling %s ahead failed", jitted, exc_info=True)
 
     thread = threading.Thread(target=compile_, name=f"compile {jitted}", daemon=True)
     thread.start()

@@ -721,16 +721,20 @@ def fit_wrinkles(
     best = int(swarm.best_trial)
     sim_key = sim_keys[best]
     levels = _levels_from(swarm.params, names, base)
-    if interrupted:  # the answer as it is, unrefined
+    if not interrupted:
+        try:
+            if refine_steps:
+                ahead.join()
+            refined, loss, image = _refine(
+                sim_key, levels, swarm.loss, refining, target_stats, fields, refine_steps
+            )
+        except KeyboardInterrupt:  # Ctrl-C while refining: the swarm's answer, as below
+            interrupted = True
+    if interrupted:  # the answer as it is, unrefined (a compile ahead may still be running)
         levels, _, image = _refine(sim_key, levels, swarm.loss, refining, target_stats, (), 0)
         return WrinkleFit(
             levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
         )
-    if refine_steps:
-        ahead.join()
-    refined, loss, image = _refine(
-        sim_key, levels, swarm.loss, refining, target_stats, fields, refine_steps
-    )
     return WrinkleFit(refined, loss, swarm.loss, swarm, names, sim_key, image, False, epochs)
 
 
