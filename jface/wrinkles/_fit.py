@@ -364,7 +364,7 @@ def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int
         pairs = _extremes(
             key, graphs[level], params, ends, ds, shape, n_samples[level], n_steps, level == 0
         )
-        entries.append(_round_up(2 * max(int(jnp.max(pairs)), 1)))
+        entries.append(_round_up(2 * max(int(np.max(pairs)), 1)))
     return tuple(entries)
 
 
