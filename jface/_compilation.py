@@ -34,6 +34,13 @@ def keep_compiled_programs() -> bool:
     return True
 
 
+#: XLA options for large programs that run briefly (``jax.jit(..., compiler_options=...)``): the
+#: backend's optimisation level 1 instead of 2 compiles a wrinkle fit's refinement in 23 % less
+#: time (26 s against 34 s) and a small fit's swarm loss in 20 % less (10.0 s against 12.5 s), and
+#: both run as fast (measured on two cores; the fit's losses agree to the last bit or two).
+QUICK_COMPILE = {"xla_backend_optimization_level": 1}
+
+
 def compile_ahead(jitted: Callable, *args) -> threading.Thread:
     """Compile ``jitted`` (``jax.jit`` or ``equinox.filter_jit``) for ``args`` in a background
     thread: XLA compiles outside the GIL, so this overlaps other work (on many cores, all of it).

@@ -9,6 +9,7 @@ other with ``lax.map`` so memory holds one swarm at a time.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -19,6 +20,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jface import _checks
+from jface._compilation import QUICK_COMPILE
 from jface.noise import counter_uniform
 
 Topology = Literal["lbest", "gbest"]
@@ -333,9 +335,11 @@ def _positions(key, n_agents: int, n: int):
     return _start(key, n_agents, n)
 
 
-@eqx.filter_jit
+@functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
 def swarm_evaluate(loss_fn, low, high, x, settings: _Settings):
-    """:func:`pso`'s evaluation of normalised positions: the one compile that holds the loss."""
+    """:func:`pso`'s evaluation of normalised positions: the one compile that holds the loss
+    (compiled quickly: a stepped swarm is for large losses, whose compile is a fit's fixed
+    cost)."""
     return _evaluate(loss_fn, low, high, x, settings)
 
 

@@ -34,7 +34,7 @@ from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float
 
 from jface import _checks
-from jface._compilation import compile_ahead, kept_arrays
+from jface._compilation import QUICK_COMPILE, compile_ahead, kept_arrays
 from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
 from jface.optim._pso import Swarm, swarm_epoch, swarm_settings, swarm_start
 from jface.optim._texture import _stats
@@ -863,7 +863,7 @@ def _refine_passes(fullest: int) -> int:
     return max(_REFINE_PASSES, 1 << (need - 1).bit_length())
 
 
-@eqx.filter_jit
+@functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
 def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, steps):
     """One program for the whole refinement: the simulation of ``levels`` (α_d snapped), BFGS
     over the logits of ``fields`` (static) with the drawing's ``passes`` (static), and the map and
