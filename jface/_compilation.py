@@ -37,7 +37,8 @@ def keep_compiled_programs() -> bool:
 #: XLA options for large programs that run briefly (``jax.jit(..., compiler_options=...)``): the
 #: backend's optimisation level 1 instead of 2 compiles a wrinkle fit's refinement in 23 % less
 #: time (26 s against 34 s) and a small fit's swarm loss in 20 % less (10.0 s against 12.5 s), and
-#: both run as fast (measured on two cores; the fit's losses agree to the last bit or two).
+#: both run as fast (measured on two cores; from one start the refinement's losses agree to the
+#: last bit or two, though a fit's 10-step refinement may then take another path).
 QUICK_COMPILE = {"xla_backend_optimization_level": 1}
 
 
