@@ -167,18 +167,19 @@ def test_bad_input(patch, kwargs, error, match, unchecked):
 def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     looked_up = []
     monkeypatch.setattr(_fit, "_LAYOUTS", {})
+    monkeypatch.setattr(_fit, "_DESIGNS", {})
     monkeypatch.setattr(_fit, "kept_arrays", lambda *a: looked_up.append(a) or kept_arrays(*a))
     kwargs = dict(SMALL, n_trials=3, names=NAMES, base=TRUE, refine_steps=0)
     runs = [fit_wrinkles(jax.random.key(0), target, **kwargs) for _ in range(2)]
     assert np.array_equal(runs[0].swarm.params, runs[1].swarm.params)
-    assert len(looked_up) == 1  # the second fit (same size and settings) kept the layout
+    assert len(looked_up) == 2  # the first fit's design and layout; the second kept them
     # rungs of n_epochs // 8 = 1 epoch: three trials run one, the better two another, the best
     # goes on to n_epochs = 10 unless it stalls (10 epochs without a 0.1 % gain)
     epochs = sorted(runs[0].epochs_run)
     assert epochs[:2] == [1, 2] and 2 < epochs[2] <= 10
     paper = fit_wrinkles(jax.random.key(1), target, mode="paper", **kwargs)
     assert paper.epochs_run == (10, 10, 10)
-    assert len(looked_up) == 1  # another seed: the same layout (and so the same programs)
+    assert len(looked_up) == 2  # another seed: the same layout (and so the same programs)
     assert not np.array_equal(paper.swarm.trial_params, runs[0].swarm.trial_params)
 
 
@@ -251,31 +252,44 @@ def test_layout_programs_are_cacheable_and_report_their_errors():
 
 def test_a_rerun_reads_the_layout_kept_on_disk(monkeypatch):
     """Where compiled programs are kept (as in this suite and on the command line), so is the
-    layout: a rerun (a new process: nothing kept in memory) reads the same arrays back without
-    building, and a damaged file is built anew and replaced."""
-    settings = (jax.random.key(7), (64, 64), D_RANGE, SMALL["n_steps"], SMALL["d_levels"])
-    path = kept_path("layouts", _fit._layout_name(*settings))
-    if path is None:
+    layout: its design (the pores and graphs, the same for every patch size) and its draw sizes.
+    A rerun (a new process: nothing kept in memory) reads the same arrays back without building,
+    a damaged file is built anew and replaced, and a fit of another size builds only its draw
+    sizes."""
+    key, rest = jax.random.key(7), (D_RANGE, SMALL["n_steps"], SMALL["d_levels"])
+    paths = [
+        kept_path("designs", _fit._design_name(key, D_RANGE, SMALL["d_levels"])),
+        kept_path("layouts", _fit._layout_name(key, (64, 64), *rest)),
+    ]
+    if None in paths:
         pytest.skip("compiled programs are not kept (JFACE_CACHE_DIR=off)")
-    fresh = _layout(*settings)  # the target's (compiled already)
+    fresh = _layout(key, (64, 64), *rest)  # the target's (compiled already)
     built = []
-    monkeypatch.setattr(_fit, "_layout", lambda *a: built.append(a) or _layout(*a))
+    design, draw_entries = _fit._design, _fit._draw_entries
+    monkeypatch.setattr(_fit, "_design", lambda *a: built.append("design") or design(*a))
+    monkeypatch.setattr(_fit, "_draw_entries", lambda *a: built.append("sizes") or draw_entries(*a))
+
+    def same(a, b):
+        assert jax.tree.structure(a) == jax.tree.structure(b)
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+            assert x.dtype == y.dtype and np.array_equal(x, y)
 
     def rerun():
         monkeypatch.setattr(_fit, "_LAYOUTS", {})
-        kept = _fit._kept_layout(*settings)
-        assert jax.tree.structure(kept) == jax.tree.structure(fresh)
-        for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(fresh), strict=True):
-            assert a.dtype == b.dtype and np.array_equal(a, b)
+        monkeypatch.setattr(_fit, "_DESIGNS", {})
+        same(_fit._kept_layout(key, (64, 64), *rest), fresh)
+        return built.copy()
 
-    rerun()  # built and written unless an earlier run of the suite wrote it
-    assert path.is_file()
+    rerun()  # built and written unless an earlier run of the suite wrote them
+    assert all(p.is_file() for p in paths)
     built.clear()
-    rerun()
-    assert not built  # read back
-    path.write_bytes(path.read_bytes()[:200])  # truncated
-    rerun()
-    assert len(built) == 1
-    built.clear()
-    rerun()
-    assert not built  # the damaged file was replaced
+    assert rerun() == []  # read back
+    for path, what in zip(paths, ("design", "sizes"), strict=True):
+        path.write_bytes(path.read_bytes()[:200])  # truncated
+        built.clear()
+        assert rerun() == [what]
+        built.clear()
+        assert rerun() == []  # the damaged file was replaced
+    other = _fit._kept_layout(key, (72, 72), *rest)
+    assert built == ["sizes"]  # the design kept in memory
+    same(other, _layout(key, (72, 72), *rest))

@@ -10,8 +10,9 @@ numbers: one pore key for every fit, :func:`layout_key`), so they are built on a
 nearest (α_d is effectively quantised to that grid; the reported α_d is the grid value). Each
 trial evaluates every agent with the same simulation key, so the loss is a deterministic function
 of the parameters. The map is drawn at the patch size rounded up to whole 8-pixel tiles (a
-periodic map needs whole tiles) and cropped. The layout of a (size, settings) is kept for the
-next fit in the process and, with the compiled programs, on disk.
+periodic map needs whole tiles) and cropped. The pores and graphs do not depend on the patch
+size: they are kept once per α_d grid, the draw sizes per patch size, for the next fit in the
+process and, with the compiled programs, on disk.
 
 Beyond the paper, the continuous drawing parameters of the best agent are then refined by
 gradient (optimistix BFGS) through the differentiable drawing with the simulation result held
@@ -23,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -191,49 +192,91 @@ def layout_key() -> Array:
     return jax.random.key(_LAYOUT_SEED)
 
 
-#: layouts of the latest fits in this process, by key and settings (a few MB each)
+class _Design(NamedTuple):
+    """The part of a layout that does not depend on the patch size: the α_d grid, its pores and
+    graphs (sampled on the unit square), the simulation's samples and the size classes."""
+
+    d_values: Float[Array, " K"]
+    graphs: tuple[PoreGraph, PoreGraph]
+    n_samples: tuple[int, int]
+    split: int
+    slots: tuple[tuple[tuple[int, int], tuple[int, int]], ...]
+
+
+#: designs and layouts of the latest fits in this process, by what they are built from (a design
+#: holds a few MB; a layout adds only its draw sizes)
+_DESIGNS: dict[tuple, _Design] = {}
 _LAYOUTS: dict[tuple, _Layout] = {}
-_KEPT_LAYOUTS = 4
+_KEPT = 4
 
 
 def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
-    """:func:`_layout`, built once per key and settings: kept in this process (patches of one
-    size fitted with one key share their pores and graphs) and, where compiled programs are kept
+    """:func:`_layout`, built once: kept in this process and, where compiled programs are kept
     (:func:`jface._compilation.keep_compiled_programs`, as the command line does), on disk, so
-    that a rerun reads it (the layout runs for seconds after its programs are compiled)."""
+    that a rerun reads it (the layout runs for seconds after its programs are compiled). Its
+    design is kept once for every patch size, so a fit of another size builds only its draw
+    sizes."""
     name = _layout_name(key, size, d_range, n_steps, d_levels)
-    if name not in _LAYOUTS:
-        while len(_LAYOUTS) >= _KEPT_LAYOUTS:
-            del _LAYOUTS[next(iter(_LAYOUTS))]  # the oldest
-        arrays = kept_arrays(
-            "layouts", name, lambda: _layout_arrays(_layout(key, size, d_range, n_steps, d_levels))
-        )
-        _LAYOUTS[name] = _layout_from(arrays, tuple(map(int, size)), n_steps)
-    return _LAYOUTS[name]
+
+    def build() -> _Layout:
+        design = _kept_design(key, d_range, d_levels)
+
+        def draw_sizes():
+            return {"entries": np.asarray(_draw_entries(key, design, size, n_steps))}
+
+        entries = kept_arrays("layouts", name, draw_sizes)["entries"]
+        return _sized(design, size, n_steps, tuple(map(int, entries)))
+
+    return _remembered(_LAYOUTS, name, build)
+
+
+def _kept_design(key, d_range, d_levels) -> _Design:
+    """:func:`_design`, kept as :func:`_kept_layout` keeps a layout."""
+    name = _design_name(key, d_range, d_levels)
+    return _remembered(
+        _DESIGNS,
+        name,
+        lambda: _design_from(
+            kept_arrays("designs", name, lambda: _design_arrays(_design(key, d_range, d_levels)))
+        ),
+    )
+
+
+def _remembered(memo: dict, name: tuple, build):
+    """``memo[name]``, built first if missing (the oldest entry makes room beyond ``_KEPT``)."""
+    if name not in memo:
+        while len(memo) >= _KEPT:
+            del memo[next(iter(memo))]
+        memo[name] = build()
+    return memo[name]
+
+
+def _design_name(key, d_range, d_levels) -> tuple:
+    """What a design is built from, as plain values."""
+    bits = np.asarray(jax.random.key_data(key)).tobytes()
+    return (str(jax.random.key_impl(key)), bits, tuple(map(float, d_range)), int(d_levels))
 
 
 def _layout_name(key, size, d_range, n_steps, d_levels) -> tuple:
     """What a layout is built from, as plain values."""
-    bits = np.asarray(jax.random.key_data(key)).tobytes()
-    size, d_range = tuple(map(int, size)), tuple(map(float, d_range))
-    return (str(jax.random.key_impl(key)), bits, size, d_range, int(n_steps), int(d_levels))
+    return (*_design_name(key, d_range, d_levels), tuple(map(int, size)), int(n_steps))
 
 
 _GRAPH_ARRAYS = tuple(f.name for f in dataclasses.fields(PoreGraph) if not f.metadata.get("static"))
 
 
-def _layout_arrays(layout: _Layout) -> dict[str, np.ndarray]:
-    """The layout as named arrays (its sizes included), for :func:`_layout_from`."""
-    arrays = {"d_values": np.asarray(layout.d_values)}
-    for field in ("n_samples", "span", "entries", "split", "slots"):
-        arrays[field] = np.asarray(getattr(layout, field))
-    for level, graph in enumerate(layout.graphs):
+def _design_arrays(design: _Design) -> dict[str, np.ndarray]:
+    """The design as named arrays, for :func:`_design_from`."""
+    arrays = {"d_values": np.asarray(design.d_values)}
+    for field in ("n_samples", "split", "slots"):
+        arrays[field] = np.asarray(getattr(design, field))
+    for level, graph in enumerate(design.graphs):
         arrays[f"{level}.periodic"] = np.asarray(graph.periodic)
         arrays.update({f"{level}.{f}": np.asarray(getattr(graph, f)) for f in _GRAPH_ARRAYS})
     return arrays
 
 
-def _layout_from(arrays: dict[str, np.ndarray], size, n_steps) -> _Layout:
+def _design_from(arrays: dict[str, np.ndarray]) -> _Design:
     graphs = tuple(
         PoreGraph(
             **{f: jnp.asarray(arrays[f"{level}.{f}"]) for f in _GRAPH_ARRAYS},
@@ -241,14 +284,9 @@ def _layout_from(arrays: dict[str, np.ndarray], size, n_steps) -> _Layout:
         )
         for level in range(2)
     )
-    n_samples, span, entries = (
-        tuple(int(n) for n in arrays[f]) for f in ("n_samples", "span", "entries")
-    )
     slots = tuple(tuple(tuple(map(int, level)) for level in c) for c in arrays["slots"])
-    return _Layout(
-        jnp.asarray(arrays["d_values"]), graphs, size, _tiled(size), n_samples, n_steps, span,
-        entries, int(arrays["split"]), slots,
-    )  # fmt: skip
+    n_samples = tuple(int(n) for n in arrays["n_samples"])
+    return _Design(jnp.asarray(arrays["d_values"]), graphs, n_samples, int(arrays["split"]), slots)
 
 
 def _tiled(size) -> tuple[int, int]:
@@ -257,7 +295,23 @@ def _tiled(size) -> tuple[int, int]:
 
 
 def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
+    """The layout of a fit of a ``size`` patch, built anew."""
+    design = _design(key, d_range, d_levels)
+    return _sized(design, size, n_steps, _draw_entries(key, design, size, n_steps))
+
+
+def _sized(design: _Design, size, n_steps, entries) -> _Layout:
+    """``design`` drawn at ``size`` with ``entries`` bins' pairs per level."""
     shape = _tiled(size)
+    # the bins enumerate pairs, so a primitive may touch every tile at no extra cost
+    span = (max(shape) // _TILE,) * 2
+    return _Layout(
+        design.d_values, design.graphs, tuple(map(int, size)), shape, design.n_samples,
+        int(n_steps), span, tuple(entries), design.split, design.slots,
+    )  # fmt: skip
+
+
+def _design(key, d_range, d_levels) -> _Design:
     lo, hi = d_range
     ranges = ((lo, hi), (lo / 2, hi / 2))
     keys = tuple(jax.random.split(key))
@@ -276,14 +330,8 @@ def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     # that the fit's 50 steps carve the patch (N = |E| would need ~5x the steps; the paper's
     # 50,000 on a patch of a few thousand edges decays by a quarter per step)
     n_samples = tuple(min(N_SAMPLES, specs[level].k * caps[level]) for level in range(2))
-    entries = _draw_entries(keys[0], d_values, graphs, shape, n_samples, n_steps)
-    # the bins enumerate pairs, so a primitive may touch every tile at no extra cost
-    span = (max(shape) // _TILE,) * 2
     split, slots = _size_classes(graphs)
-    return _Layout(
-        jnp.asarray(d_values), graphs, tuple(size), shape, n_samples, n_steps, span, entries,
-        split, slots,
-    )  # fmt: skip
+    return _Design(jnp.asarray(d_values), graphs, n_samples, split, slots)
 
 
 def _size_classes(graphs: tuple[PoreGraph, PoreGraph]):
@@ -352,18 +400,20 @@ def _grid_graphs(pores, specs):
     return jax.lax.map(one, pores)
 
 
-def _draw_entries(key, d_values, graphs, shape, n_samples, n_steps) -> tuple[int, int]:
+def _draw_entries(key, design: _Design, size, n_steps) -> tuple[int, int]:
     """Binned (primitive, tile) pairs per level that draw the densest and the sparsest α_d of
-    the grid with the simulation's default weights and the drawing fields at ``_WIDE``, with
-    headroom (2x)."""
+    ``design`` at ``size`` with the simulation's default weights and the drawing fields at
+    ``_WIDE``, with headroom (2x)."""
+    key, shape, d_values = jax.random.split(key)[0], _tiled(size), design.d_values
     entries = []
     ends = jnp.asarray([0, len(d_values) - 1])
     for level in range(2):
         params = WrinkleParams(d=float(d_values[0]) / (1 + level), **_WIDE)
-        ds = jnp.asarray(d_values)[ends] / (1 + level)
+        ds = d_values[ends] / (1 + level)
         pairs = _extremes(
-            key, graphs[level], params, ends, ds, shape, n_samples[level], n_steps, level == 0
-        )
+            key, design.graphs[level], params, ends, ds, shape, design.n_samples[level], n_steps,
+            level == 0,
+        )  # fmt: skip
         entries.append(_round_up(2 * max(int(np.max(pairs)), 1)))
     return tuple(entries)
 
