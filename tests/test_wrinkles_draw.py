@@ -26,9 +26,13 @@ from jface.wrinkles import (
     simulate,
 )
 from jface.wrinkles._drawing import (
+    BETA,
     FOOTPRINT,
+    N_HAT,
     N_VERTICES,
     DrawOptions,
+    _draw_flagged,
+    _static_sizes,
     bin_primitives,
     needed_entries,
     needed_span,
@@ -317,6 +321,23 @@ def test_bad_input(level, unchecked):
         draw(key, graph, weights, params, (N, N), tile=5)
     with pytest.raises(Exception, match="span=1"):
         draw(key, graph, weights, params, (N, N), tile=4, span=1)
+
+
+def test_a_crowded_tile_is_an_error_eager_and_under_jit(level):
+    """Concrete inputs draw with a program that holds no host callback (JAX's persistent
+    compilation cache keeps it) and raise here; under jit the check runs in the program."""
+    graph, weights, params = level
+    key, shape = jax.random.key(0), (N, N)
+    few = {"tile": 32, "capacity": 1, "passes": 1}
+    with pytest.raises(ValueError, match="passes·capacity=1 wrinkles"):
+        draw(key, graph, weights, params, shape, **few)
+    jitted = jax.jit(lambda w: draw(key, graph, w, params, shape, **few))
+    with pytest.raises(Exception, match="passes·capacity=1 wrinkles"):
+        jax.block_until_ready(jitted(weights))
+    prims = primitives(key, graph, weights, params, shape)
+    opts = _static_sizes(prims, shape, DrawOptions(True, 16, 16, None, None, BETA, N_HAT), True)
+    program = jax.make_jaxpr(lambda: _draw_flagged(key, prims, params, shape, opts, True))()
+    assert "callback" not in str(program)
 
 
 def test_old_json_without_drawing_fields_loads():

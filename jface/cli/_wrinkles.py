@@ -461,7 +461,7 @@ def _extract(args: argparse.Namespace) -> dict:
 
 
 def demo(out_dir: Path, seed: int) -> None:
-    """Pores and wrinkles on a tileable patch (a few seconds, mostly compilation)."""
+    """Pores and wrinkles on a tileable patch, simulated to convergence, and its map drawn."""
     from jface.cli import main
 
     main(
@@ -469,10 +469,9 @@ def demo(out_dir: Path, seed: int) -> None:
          "--d", "0.03", "--theta", "0.6", "--s", "0.2", "--cross", "0.5", "--deposit", "0.4",
          "--periodic", "--size", "768", "--seed", str(seed)]
     )  # fmt: skip
-    # and a drawn displacement map (§3.2) of the same parameters
-    params = Path(out_dir) / "wrinkles" / "params.json"
+    # and a drawn displacement map (§3.2) of that simulation (its weights, not simulated again)
     main(
-        ["wrinkles", "render", "--params", str(params), "--out",
+        ["wrinkles", "render", "--simulation", str(Path(out_dir) / "wrinkles"), "--out",
          str(Path(out_dir) / "wrinkles" / "displacement.exr"), "--size", "512", "--periodic",
          "--seed", str(seed)]
     )  # fmt: skip

@@ -677,22 +677,32 @@ def _tile_rows(key, prims, bins, params, shape, opts, periodic, first, n):
     return _finish(key, band[:, : shape[1]], params, _pixel_uv(shape, rows), periodic)
 
 
-@eqx.filter_jit
 def _draw(key, prims, params, shape, opts, periodic):
+    """The map, checked: an error under ``jit`` at run time, else raised here (concrete inputs
+    draw with a program that holds no host callback, which JAX's persistent compilation cache
+    would not keep: a rerun of ``wrinkles render`` then compiles no drawing)."""
+    out, overflow, crowded = _draw_flagged(key, prims, params, shape, opts, periodic)
+    errors = (
+        (overflow, f"a wrinkle or pore touches more than span={opts.span} tiles per axis; pass a "
+                   "larger span (or a larger tile) to draw"),
+        (crowded, f"a tile holds more than passes·capacity={opts.passes * opts.capacity} "
+                  "wrinkles and pores; pass larger passes or capacity (or a smaller tile) to draw"),
+    )  # fmt: skip
+    for flag, message in errors:
+        if _checks.is_traced(out):
+            out = eqx.error_if(out, flag, message)
+        elif bool(flag):
+            raise ValueError(message)
+    return out
+
+
+@eqx.filter_jit
+def _draw_flagged(key, prims, params, shape, opts, periodic):
+    """The map, whether some primitive overflowed the bins and whether a tile held more than the
+    passes draw."""
     bins = _bin(prims, shape, opts, periodic)
     out = render(key, prims, bins, params, shape, opts, periodic)
-    out = eqx.error_if(
-        out,
-        bins.overflow,
-        f"a wrinkle or pore touches more than span={opts.span} tiles per axis; pass a larger "
-        "span (or a larger tile) to draw",
-    )
-    return eqx.error_if(
-        out,
-        jnp.max(bins.count) > opts.passes * opts.capacity,
-        f"a tile holds more than passes·capacity={opts.passes * opts.capacity} wrinkles and "
-        "pores; pass larger passes or capacity (or a smaller tile) to draw",
-    )
+    return out, bins.overflow, jnp.max(bins.count) > opts.passes * opts.capacity
 
 
 def render(key, prims, bins, params, shape, opts: DrawOptions, periodic) -> Float[Array, "H W"]:
