@@ -615,7 +615,8 @@ def draw(
 
     Raises:
         TypeError/ValueError: wrong types, sizes ≤ 0 or above 65536, weights outside [0, 1], a
-            tile that does not divide a periodic map.
+            tile that does not divide a periodic map; for concrete inputs, a ``span`` or
+            ``passes`` too small (under jit: an error when the program runs).
     """
     opts = DrawOptions(bulge, tile, capacity, span, passes, beta, n_hat)
     key, w, shape, opts = _check_draw(key, graph, weights, params, shape, opts)
@@ -678,9 +679,10 @@ def _tile_rows(key, prims, bins, params, shape, opts, periodic, first, n):
 
 
 def _draw(key, prims, params, shape, opts, periodic):
-    """The map, checked: an error under ``jit`` at run time, else raised here (concrete inputs
-    draw with a program that holds no host callback, which JAX's persistent compilation cache
-    would not keep: a rerun of ``wrinkles render`` then compiles no drawing)."""
+    """The map, checked: under a transformation (jit, vmap, grad) an error at run time, else
+    raised here (concrete inputs draw with a program that holds no host callback, which JAX's
+    persistent compilation cache would not keep: a rerun of ``wrinkles render`` then compiles
+    no drawing)."""
     out, overflow, crowded = _draw_flagged(key, prims, params, shape, opts, periodic)
     errors = (
         (overflow, f"a wrinkle or pore touches more than span={opts.span} tiles per axis; pass a "
