@@ -16,6 +16,7 @@ from jface._compilation import kept_arrays, kept_path
 from jface.cli import main
 from jface.io import write_exr
 from jface.optim import texture_stats
+from jface.optim._pso import swarm_settings
 from jface.wrinkles import WrinkleParams, _fit, fit_wrinkles
 from jface.wrinkles._fit import (
     _draw,
@@ -181,6 +182,80 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     assert paper.epochs_run == (10, 10, 10)
     assert len(looked_up) == 2  # another seed: the same layout (and so the same programs)
     assert not np.array_equal(paper.swarm.trial_params, runs[0].swarm.trial_params)
+
+
+class _Bowl(eqx.Module):
+    """A cheap stand-in for a trial's loss: a quadratic bowl around ``centre`` (``key``: the
+    trial's simulation key, which a polish receives)."""
+
+    key: jax.Array
+    centre: jax.Array
+
+    def __call__(self, xs):
+        return jnp.sum((xs - self.centre) ** 2, axis=-1)
+
+
+def test_polished_bests_join_their_swarms_and_the_race():
+    """A polish that finds the bowl's minimum: after the first rung every trial's best is that
+    point (its best agent's personal best, and the history's last entry), the race compares the
+    polished losses, and the last trial stalls once the polish gains nothing more (10 epochs
+    after the first polish). A worse or out-of-box polish changes nothing."""
+    low, high = np.zeros(2, np.float32), np.full(2, 2.0, np.float32)
+    search = (low, high, np.zeros(2, bool), swarm_settings(4, batched=True))
+    centre = np.array([0.5, 1.5], np.float32)
+    keys = jax.random.split(jax.random.key(0), 3)
+    runs = [_fit._Trial(k, _Bowl(jax.random.key(t), jnp.asarray(centre))) for t, k in
+            enumerate(keys)]  # fmt: skip
+    calls = []
+
+    def polish(sim_key, best, start):
+        calls.append(sim_key)
+        return centre, 0.0
+
+    _fit._halve(runs, 16, search, None, polish)
+    # rungs of 2 epochs: 3 trials, then 2 (ties keep the order), then trial 0 polished every 2
+    # epochs until its best (0 from epoch 2 on) has not fallen for 10 epochs
+    assert [len(r.history) - 1 for r in runs] == [12, 4, 2]
+    assert len(calls) == 3 + 2 + 4
+    for r in runs:
+        assert float(r.swarm.best) == 0.0 and r.history[-1] == 0.0
+        np.testing.assert_array_equal(r.swarm.best_params(low, high), centre)
+    trial = _fit._Trial(keys[0], _Bowl(jax.random.key(0), jnp.asarray(centre)))
+    trial.advance(1, search, 0, None)
+    before = (trial.swarm, list(trial.history))
+    best = float(trial.swarm.best)
+    trial.polish(lambda *a: (centre, best + 1.0), search)  # worse
+    trial.polish(lambda *a: (np.array([0.5, 2.5], np.float32), 0.0), search)  # out of the box
+    assert trial.swarm is before[0] and trial.history == before[1]
+    trial.polish(None, search)
+    assert trial.swarm is before[0]
+
+
+def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
+    """With rungs large enough (here: any), fast mode refines every trial's best after each rung
+    and keeps what the refinement found: the fit's swarm loss is at most every polish's loss
+    in the winning trial, and at least one polish gained."""
+    polished = []
+
+    def refine(sim_key, levels, start, *args):
+        out = _refine(sim_key, levels, start, *args)
+        polished.append((sim_key, float(start), float(out[1])))
+        return out
+
+    monkeypatch.setattr(_fit, "POLISH_FROM", 1)
+    monkeypatch.setattr(_fit, "_refine", refine)
+    names = (*NAMES, "1.wrinkle_width")
+    small = dict(SMALL, n_agents=3, n_epochs=8)  # rungs of one epoch
+    fit = fit_wrinkles(jax.random.key(1), target, names=names, base=TRUE, n_trials=2,
+                       refine_steps=2, **small)  # fmt: skip
+    assert sorted(fit.epochs_run) == [1, 8]
+    # two after the first rung, seven after the last trial's epochs 2-8, then the final one
+    assert len(polished) == 2 + 7 + 1
+    winner = [loss for key, _, loss in polished[:-1] if jnp.array_equal(
+        jax.random.key_data(key), jax.random.key_data(fit.sim_key))]  # fmt: skip
+    assert len(winner) == 8
+    assert float(fit.swarm_loss) <= min(winner) * (1 + 1e-6)
+    assert any(loss < start for _, start, loss in polished[:-1])
 
 
 def test_interrupt_keeps_the_best_so_far(target):
