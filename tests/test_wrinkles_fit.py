@@ -233,8 +233,8 @@ def test_polished_bests_join_their_swarms_and_the_race():
 
 def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
     """With rungs large enough (here: any), fast mode refines every trial's best after each rung
-    and keeps what the refinement found: the fit's swarm loss is at most every polish's loss
-    in the winning trial, and at least one polish gained."""
+    and keeps what the refinement found: a polish of the winning trial that gained is its best
+    from that epoch on, and the fit's swarm loss is at most every polish's loss."""
     polished = []
 
     def refine(sim_key, levels, start, *args):
@@ -251,11 +251,16 @@ def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
     assert sorted(fit.epochs_run) == [1, 8]
     # two after the first rung, seven after the last trial's epochs 2-8, then the final one
     assert len(polished) == 2 + 7 + 1
-    winner = [loss for key, _, loss in polished[:-1] if jnp.array_equal(
+    winner = [(start, loss) for key, start, loss in polished[:-1] if jnp.array_equal(
         jax.random.key_data(key), jax.random.key_data(fit.sim_key))]  # fmt: skip
-    assert len(winner) == 8
-    assert float(fit.swarm_loss) <= min(winner) * (1 + 1e-6)
-    assert any(loss < start for _, start, loss in polished[:-1])
+    assert len(winner) == 8  # after each of its epochs 1-8
+    # a polish that gained became the trial's best at that epoch (and stays in the history)
+    history = np.asarray(fit.swarm.history)[int(fit.swarm.best_trial)]
+    gained = [(e, loss) for e, (start, loss) in enumerate(winner, 1) if loss < start]
+    assert gained
+    for epoch, loss in gained:
+        assert history[epoch] == pytest.approx(loss, rel=1e-6)
+    assert float(fit.swarm_loss) <= min(loss for _, loss in winner) * (1 + 1e-6)
 
 
 def test_interrupt_keeps_the_best_so_far(target):

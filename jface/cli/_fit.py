@@ -80,8 +80,8 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--paper", action="store_true",
         help="the paper's procedure: every trial runs all --iters epochs, no early stop "
-        "(default: off: trials by successive halving, each rung's bests refined by gradient, "
-        "stop when the best loss improves by less than 0.1 %% over 10 epochs)",
+        "(default: off: trials by successive halving, each rung's bests refined by gradient in "
+        "full fits, stop when the best loss improves by less than 0.1 %% over 10 epochs)",
     )  # fmt: skip
     parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
     parser.add_argument(

@@ -96,7 +96,8 @@ class WrinkleFit(eqx.Module):
     Attributes:
         levels: the fitted ``(level 1, level 2)`` parameters (after refinement).
         loss: texture loss of ``levels``.
-        swarm_loss: texture loss of the swarm's best, before the gradient refinement.
+        swarm_loss: texture loss of the swarm's best, before the final gradient refinement (in
+            fast mode's full fits the swarm's bests were already polished by it on the way).
         swarm: the :class:`jface.optim.PSOResult` (history for a convergence plot).
         names: the fitted parameter names, in the order of ``swarm.params`` (static).
         sim_key: the simulation key of the best trial (reproduces ``fitted``).
@@ -676,8 +677,9 @@ def fit_wrinkles(
             ``n_epochs // 8`` epochs, the better half goes on; the last runs up to ``n_epochs``)
             and the swarm stops when its best loss fell by less than 0.1 % over 10 epochs;
             when a rung holds :data:`POLISH_FROM` evaluations or more, every trial's best is
-            refined (as at the end) after each of its rungs and rejoins its swarm as its best
-            agent's personal best, so the race compares refined answers; ``"paper"``: every
+            refined (as at the end) after each of its rungs and, when that gains and stays in
+            the search box, rejoins its swarm as its best agent's personal best, so the race
+            compares refined answers (``progress`` saw the epoch's best before); ``"paper"``: every
             trial runs all ``n_epochs`` (the paper's procedure).
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
@@ -857,11 +859,13 @@ class _Trial:
             return
         low, high = search[:2]
         w = self.swarm
-        params, loss = polish(self.loss.key, w.best_params(low, high), w.best)
-        u = (np.asarray(params) - low) / (high - low)
+        i = int(jnp.argmin(w.ps))
+        best = np.asarray(w.best_params(low, high))
+        params, loss = polish(self.loss.key, best, w.best)
+        # the entries the polish left keep their normalised values exactly
+        u = np.where(params == best, w.p[i], (np.asarray(params) - low) / (high - low))
         if not (loss < float(w.best) and np.all((u >= 0) & (u <= 1))):
             return
-        i = int(jnp.argmin(w.ps))
         self.swarm = eqx.tree_at(lambda s: (s.p, s.ps), w, (w.p.at[i].set(u), w.ps.at[i].set(loss)))
         self.history[-1] = float(self.swarm.best)
 
