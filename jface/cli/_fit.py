@@ -25,6 +25,7 @@ from jface.cli._processes import Elsewhere, add_process_options, spread
 from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import (
+    POLISH_FROM,
     REFINE_STEPS,
     ParamUnits,
     fit_wrinkles,
@@ -302,10 +303,12 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     stem = out.with_suffix("")
     patch = read_map(patch_path, args.channel)
     units = _units(args.patch_size, patch.shape)
-    total = args.trials * args.epochs if args.paper else _halving_epochs(args.trials, args.epochs)
-    # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², plus about 2 min of fixed
-    # cost (1 min when an earlier fit of this patch size left its compiled programs cached)
-    minutes = (total * args.agents * 0.16 * patch.size / 256**2 + 120) / 60
+    total, polishes = (args.trials * args.epochs, 0) if args.paper else _halving(args)
+    # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², a polish about 70 of those,
+    # plus about 2 min of fixed cost (1 min when an earlier fit of this patch size left its
+    # compiled programs cached)
+    evaluations = total * args.agents + polishes * 70
+    minutes = (evaluations * 0.16 * patch.size / 256**2 + 120) / 60
     print(
         f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "
         f"trials on the {patch.shape[1]}×{patch.shape[0]} patch {patch_path}: at most about "
@@ -381,10 +384,15 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     return document
 
 
-def _halving_epochs(trials: int, epochs: int) -> int:
-    """Epochs of a fast fit at most: rungs of ``epochs // 8`` for a halving field of trials,
-    then the last trial on to ``epochs`` in all."""
-    rung, total, done = max(1, epochs // 8), 0, 0
+def _halving(args) -> tuple[int, int]:
+    """Epochs of a fast fit at most (rungs of ``epochs // 8`` for a halving field of trials,
+    then the last trial on to ``epochs`` in all) and the polishes among them (one per trial
+    and rung, when the fit polishes: :data:`jface.wrinkles.POLISH_FROM`)."""
+    trials, epochs = args.trials, args.epochs
+    rung, total, done, rungs = max(1, epochs // 8), 0, 0, 0
     while trials > 1:
-        total, done, trials = total + trials * rung, done + rung, -(-trials // 2)
-    return total + max(0, epochs - done)
+        total, done, rungs = total + trials * rung, done + rung, rungs + trials
+        trials = -(-trials // 2)
+    rest = max(0, epochs - done)
+    polishing = args.refine_steps != 0 and args.agents * (epochs // 8) >= POLISH_FROM
+    return total + rest, (rungs + -(-rest // rung)) * polishing

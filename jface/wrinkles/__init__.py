@@ -37,7 +37,13 @@ from jface.wrinkles._extraction import (
     gaussian_blur,
     label_components,
 )
-from jface.wrinkles._fit import PAPER_NAMES, REFINE_STEPS, WrinkleFit, fit_wrinkles
+from jface.wrinkles._fit import (
+    PAPER_NAMES,
+    POLISH_FROM,
+    REFINE_STEPS,
+    WrinkleFit,
+    fit_wrinkles,
+)
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
 from jface.wrinkles._mesh_radius import radius_map_from_mesh
 from jface.wrinkles._params import (
@@ -86,6 +92,7 @@ __all__ = [
     "N_SAMPLES",
     "PAPER_NAMES",
     "PARAMETER_RANGES",
+    "POLISH_FROM",
     "REFINE_STEPS",
     "Bands",
     "GraphSpec",
