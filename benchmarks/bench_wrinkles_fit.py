@@ -36,7 +36,7 @@ from skimage import data
 from jface import detail
 from jface._compilation import keep_compiled_programs
 from jface.optim import texture_stats
-from jface.wrinkles import WrinkleParams, fit_wrinkles, params_to_json
+from jface.wrinkles import REFINE_STEPS, WrinkleParams, fit_wrinkles, params_to_json
 from jface.wrinkles._fit import (
     D_RANGE,
     PAPER_NAMES,
@@ -46,6 +46,8 @@ from jface.wrinkles._fit import (
     _layout,
     _levels_from,
     _loss,
+    _polishes,
+    _rung,
     _simulate,
     _SwarmLoss,
 )
@@ -113,6 +115,15 @@ TRUTH = (
     WrinkleParams(d=0.03, theta=0.8, s=0.3, deposit=0.5),
     WrinkleParams(d=0.015, theta=0.8, s=0.3, deposit=0.5, snoise=0.001),
 )
+
+
+def polish_count(fit, mode: str, args) -> int:
+    """Polishes the fit ran: one after each of a trial's rungs (the last trial's: its chunks of a
+    rung's epochs), when the fit polishes."""
+    steps = REFINE_STEPS[mode] if args.refine_steps is None else args.refine_steps
+    if not _polishes(mode, steps, args.agents, args.epochs):
+        return 0
+    return sum(-(-epochs // _rung(args.epochs)) for epochs in fit.epochs_run)
 
 
 def make_target(name: str, size: int, steps: int) -> np.ndarray:
@@ -199,6 +210,7 @@ def main() -> None:
                     loss=float(fit.loss),
                     epochs_run=list(fit.epochs_run),
                     evaluations=args.agents * sum(e + 1 for e in fit.epochs_run),
+                    polishes=polish_count(fit, mode, args),
                     nonfinite_evaluations=int(np.sum(np.asarray(fit.swarm.n_nonfinite))),
                     **extra,
                 )

@@ -47,7 +47,8 @@ def test_sharded_equals_unsharded(maps, tmp_path):
         np.save({str(tmp_path / "sharded.npy")!r}, np.asarray(stats.std))
         """
     )
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    flags = f"{os.environ['XLA_FLAGS']} --xla_force_host_platform_device_count=4"
+    env = dict(os.environ, XLA_FLAGS=flags)
     subprocess.run([sys.executable, "-c", script], check=True, env=env, cwd=Path.cwd())
     unsharded = detail.analyze_batch(maps, grid=8, n_scales=3, devices=jax.devices()[:1])
     np.testing.assert_allclose(np.load(tmp_path / "sharded.npy"), unsharded.std, rtol=1e-5)

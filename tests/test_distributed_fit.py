@@ -25,7 +25,7 @@ from jface.wrinkles import fit_wrinkles
 FIT = [*TINY_FIT, "--iters", "2"]
 #: Every process of these tests runs XLA's CPU code the one deterministic way (as the command's
 #: own processes do), so that the persistent compilation cache serves all of them.
-FLAGS = deterministic_cpu_flags()
+FLAGS = deterministic_cpu_flags(os.environ.get("XLA_FLAGS", ""))
 
 # One process with 4 virtual CPU devices fits a patch with its 6 agents on one device and
 # sharded over 4 (padded to 8 with copies of agent 0), and prints both results.

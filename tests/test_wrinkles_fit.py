@@ -17,7 +17,7 @@ from jface.cli import main
 from jface.io import write_exr
 from jface.optim import texture_stats
 from jface.optim._pso import swarm_settings
-from jface.wrinkles import WrinkleParams, _fit, fit_wrinkles
+from jface.wrinkles import WrinkleParams, _fit, fit_budget, fit_wrinkles
 from jface.wrinkles._fit import (
     _draw,
     _drawing_fields,
@@ -165,6 +165,16 @@ def test_bad_input(patch, kwargs, error, match, unchecked):
         fit_wrinkles(jax.random.key(0), patch, **kwargs)
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [({"mode": "quick"}, "mode"), ({"n_agents": 2}, "n_agents"), ({"n_trials": 0}, "n_trials"),
+     ({"n_epochs": 2.5}, "n_epochs"), ({"refine_steps": -1}, "refine_steps")],
+)  # fmt: skip
+def test_fit_budget_bad_input(kwargs, match):
+    with pytest.raises((TypeError, ValueError), match=match):
+        fit_budget(**kwargs)
+
+
 def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     looked_up = []
     monkeypatch.setattr(_fit, "_LAYOUTS", {})
@@ -178,8 +188,11 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     # goes on to n_epochs = 10 unless it stalls (10 epochs without a 0.1 % gain)
     epochs = sorted(runs[0].epochs_run)
     assert epochs[:2] == [1, 2] and 2 < epochs[2] <= 10
+    # at most: three rungs of one epoch, two more, the last trial's eight; no polishes
+    assert sum(epochs) <= fit_budget(10, 10, 3, refine_steps=0)[0] == 1 + 2 + 10
     paper = fit_wrinkles(jax.random.key(1), target, mode="paper", **kwargs)
     assert paper.epochs_run == (10, 10, 10)
+    assert fit_budget(10, 10, 3, mode="paper") == (30, 0)
     assert len(looked_up) == 2  # another seed: the same layout (and so the same programs)
     assert not np.array_equal(paper.swarm.trial_params, runs[0].swarm.trial_params)
 
@@ -251,6 +264,7 @@ def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
     assert sorted(fit.epochs_run) == [1, 8]
     # two after the first rung, seven after the last trial's epochs 2-8, then the final one
     assert len(polished) == 2 + 7 + 1
+    assert fit_budget(3, 8, 2, refine_steps=2) == (1 + 8, 2 + 7)  # what the fit ran
     winner = [(start, loss) for key, start, loss in polished[:-1] if jnp.array_equal(
         jax.random.key_data(key), jax.random.key_data(fit.sim_key))]  # fmt: skip
     assert len(winner) == 8  # after each of its epochs 1-8

@@ -25,9 +25,9 @@ from jface.cli._processes import Elsewhere, add_process_options, spread
 from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import (
-    POLISH_FROM,
     REFINE_STEPS,
     ParamUnits,
+    fit_budget,
     fit_wrinkles,
     params_to_json,
     parse_patch_size,
@@ -303,7 +303,9 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     stem = out.with_suffix("")
     patch = read_map(patch_path, args.channel)
     units = _units(args.patch_size, patch.shape)
-    total, polishes = (args.trials * args.epochs, 0) if args.paper else _halving(args)
+    total, polishes = fit_budget(
+        args.agents, args.epochs, args.trials, refine_steps=args.refine_steps, mode=mode
+    )
     # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², a polish about 70 of those,
     # plus about 2 min of fixed cost (1 min when an earlier fit of this patch size left its
     # compiled programs cached)
@@ -382,17 +384,3 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
               file=sys.stderr)  # fmt: skip
         raise KeyboardInterrupt
     return document
-
-
-def _halving(args) -> tuple[int, int]:
-    """Epochs of a fast fit at most (rungs of ``epochs // 8`` for a halving field of trials,
-    then the last trial on to ``epochs`` in all) and the polishes among them (one per trial
-    and rung, when the fit polishes: :data:`jface.wrinkles.POLISH_FROM`)."""
-    trials, epochs = args.trials, args.epochs
-    rung, total, done, rungs = max(1, epochs // 8), 0, 0, 0
-    while trials > 1:
-        total, done, rungs = total + trials * rung, done + rung, rungs + trials
-        trials = -(-trials // 2)
-    rest = max(0, epochs - done)
-    polishing = args.refine_steps != 0 and args.agents * (epochs // 8) >= POLISH_FROM
-    return total + rest, (rungs + -(-rest // rung)) * polishing

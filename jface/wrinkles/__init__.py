@@ -42,6 +42,7 @@ from jface.wrinkles._fit import (
     POLISH_FROM,
     REFINE_STEPS,
     WrinkleFit,
+    fit_budget,
     fit_wrinkles,
 )
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
@@ -119,6 +120,7 @@ __all__ = [
     "extract_orientation",
     "extract_pores",
     "find_pores",
+    "fit_budget",
     "fit_wrinkles",
     "gabor_energy",
     "gabor_kernels",

@@ -767,7 +767,7 @@ def fit_wrinkles(
         refine_args = (refining, target_stats, fields, (_REFINE_PASSES,) * 2, refine_steps)
         ahead = compile_ahead(_refined, sim_keys[0], like, *refine_args)
     polish = None
-    if mode == "fast" and refine_steps and settings.n_agents * (n_epochs // 8) >= POLISH_FROM:
+    if _polishes(mode, refine_steps, settings.n_agents, n_epochs):
         index = {name: i for i, name in enumerate(names)}
 
         def polish(sim_key, best, start):  # the refinement of a trial's best, as parameters
@@ -879,7 +879,7 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
     early when it stalls. With ``polish``, every trial's best is polished after each of its
     rungs (the last trial's every ``n_epochs // 8`` epochs), before the trials are compared."""
-    rung = max(1, n_epochs // 8)
+    rung = _rung(n_epochs)
     alive = list(range(len(runs)))
     while len(alive) > 1:
         for t in alive:
@@ -890,6 +890,46 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     while (done := len(runs[t].history) - 1) < n_epochs and not runs[t].stalled():
         runs[t].advance(min(rung, n_epochs - done), search, t, progress, stall=True)
         runs[t].polish(polish, search)
+
+
+def _rung(n_epochs: int) -> int:
+    """Epochs of a rung of the fast mode's race."""
+    return max(1, n_epochs // 8)
+
+
+def _polishes(mode: str, refine_steps: int, n_agents: int, n_epochs: int) -> bool:
+    """Whether a fit polishes its trials' bests after every rung (fast mode, a refinement, and
+    rungs of :data:`POLISH_FROM` evaluations or more)."""
+    return mode == "fast" and refine_steps > 0 and n_agents * (n_epochs // 8) >= POLISH_FROM
+
+
+def fit_budget(
+    n_agents: int = 50,
+    n_epochs: int = 100,
+    n_trials: int = 3,
+    *,
+    refine_steps: int | None = None,
+    mode: str = "fast",
+) -> tuple[int, int]:
+    """The most swarm epochs (each ``n_agents`` evaluations) and polishes (refinements of a
+    trial's best, each about as dear as 70 evaluations) that :func:`fit_wrinkles` with these
+    settings runs: all of them in paper mode; in fast mode a field of trials halved after every
+    rung, then the last trial on to ``n_epochs`` (fewer when it stalls)."""
+    mode = _checks.choice(mode, "mode", ("fast", "paper"))
+    n_agents = _checks.integer(n_agents, "n_agents", low=3)
+    n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
+    n_trials = _checks.integer(n_trials, "n_trials", low=1)
+    refine_steps = REFINE_STEPS[mode] if refine_steps is None else refine_steps
+    refine_steps = _checks.integer(refine_steps, "refine_steps", low=0)
+    if mode == "paper":
+        return n_trials * n_epochs, 0
+    rung, epochs, done, rungs = _rung(n_epochs), 0, 0, 0
+    while n_trials > 1:
+        epochs, done, rungs = epochs + n_trials * rung, done + rung, rungs + n_trials
+        n_trials = -(-n_trials // 2)
+    rest = max(0, n_epochs - done)
+    polishing = _polishes(mode, refine_steps, n_agents, n_epochs)
+    return epochs + rest, (rungs + -(-rest // rung)) * polishing
 
 
 def _result(runs: list[_Trial], low, high) -> PSOResult:
