@@ -13,7 +13,10 @@ from pathlib import Path
 # test_transforms.py 375 → 287 s, test_wrinkles_fit.py 436 → 387 s). Programs that choose their
 # own level (the wrinkle fit's, jface._compilation.QUICK_COMPILE) keep it. Set before JAX starts;
 # processes that tests start inherit it (tests that set XLA_FLAGS for a process append to it).
-os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0"
+# A level given in XLA_FLAGS is kept.
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    flags = os.environ.get("XLA_FLAGS", "")
+    os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=0".strip()
 
 import jax
 import numpy as np

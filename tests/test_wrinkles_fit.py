@@ -190,6 +190,11 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     assert epochs[:2] == [1, 2] and 2 < epochs[2] <= 10
     # at most: three rungs of one epoch, two more, the last trial's eight; no polishes
     assert sum(epochs) <= fit_budget(10, 10, 3, refine_steps=0)[0] == 1 + 2 + 10
+    # worked by hand: the defaults; either side of POLISH_FROM (rungs of 12 × 24 or 25 agents);
+    # rungs of 2 with an odd rest; one trial; rungs that add up to more than n_epochs
+    assert fit_budget() == (136, 12) and fit_budget(24) == (136, 0) and fit_budget(25) == (136, 12)
+    assert fit_budget(150, 21, 3) == (27, 14) and fit_budget(150, 20, 1) == (20, 10)
+    assert fit_budget(10, 2, 16, refine_steps=0) == (30, 0)
     paper = fit_wrinkles(jax.random.key(1), target, mode="paper", **kwargs)
     assert paper.epochs_run == (10, 10, 10)
     assert fit_budget(10, 10, 3, mode="paper") == (30, 0)
@@ -198,14 +203,15 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
 
 
 class _Bowl(eqx.Module):
-    """A cheap stand-in for a trial's loss: a quadratic bowl around ``centre`` (``key``: the
-    trial's simulation key, which a polish receives)."""
+    """A cheap stand-in for a trial's loss: a quadratic bowl around ``centre``, lifted by
+    ``floor`` (``key``: the trial's simulation key, which a polish receives)."""
 
     key: jax.Array
     centre: jax.Array
+    floor: float = 0.0
 
     def __call__(self, xs):
-        return jnp.sum((xs - self.centre) ** 2, axis=-1)
+        return jnp.sum((xs - self.centre) ** 2, axis=-1) + self.floor
 
 
 def test_polished_bests_join_their_swarms_and_the_race():
@@ -242,6 +248,28 @@ def test_polished_bests_join_their_swarms_and_the_race():
     assert trial.swarm is before[0] and trial.history == before[1]
     trial.polish(None, search)
     assert trial.swarm is before[0]
+
+
+def test_a_stalled_trial_is_polished_once_and_stops():
+    """The last trial's swarm stalls on the lifted bowl; the polish where it stalls gains (here
+    a half, only there) but does not send it on: it stopped before ``n_epochs``, with one
+    polish per started rung, as :func:`fit_budget` counts them."""
+    low, high = np.zeros(2, np.float32), np.full(2, 2.0, np.float32)
+    search = (low, high, np.zeros(2, bool), swarm_settings(4, batched=True))
+    centre = np.array([0.5, 1.5], np.float32)
+    (run,) = runs = [_fit._Trial(jax.random.key(0), _Bowl(jax.random.key(1), centre, 1.0))]
+    polished = []
+
+    def polish(sim_key, best, start):
+        polished.append(len(run.history) - 1)
+        return centre, start * (0.5 if run.stalled() else 2.0)  # gains only where stalled
+
+    _fit._halve(runs, 80, search, None, polish)  # rungs of 10 epochs
+    epochs = len(run.history) - 1
+    assert run.stalled() is False and 10 < epochs < 80  # stopped early, its stall polished away
+    assert polished == [*range(10, epochs, 10), epochs] and epochs % 10 != 0
+    assert run.history[-1] == pytest.approx(0.5 * run.history[-2], rel=1e-6)
+    assert len(polished) == -(-epochs // 10) <= fit_budget(30, 80, 1, refine_steps=1)[1] == 8
 
 
 def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):

@@ -677,9 +677,10 @@ def fit_wrinkles(
             ``n_epochs // 8`` epochs, the better half goes on; the last runs up to ``n_epochs``)
             and the swarm stops when its best loss fell by less than 0.1 % over 10 epochs;
             when a rung holds :data:`POLISH_FROM` evaluations or more, every trial's best is
-            refined (as at the end) after each of its rungs and, when that gains and stays in
-            the search box, rejoins its swarm as its best agent's personal best, so the race
-            compares refined answers (``progress`` saw the epoch's best before); ``"paper"``: every
+            refined (as at the end) after each of its rungs (and where the last one stalls)
+            and, when that gains and stays in the search box, rejoins its swarm as its best
+            agent's personal best, so the race compares refined answers (``progress`` saw the
+            epoch's best before; a stalled trial stops all the same); ``"paper"``: every
             trial runs all ``n_epochs`` (the paper's procedure).
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
@@ -878,7 +879,8 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs, the better half
     goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
     early when it stalls. With ``polish``, every trial's best is polished after each of its
-    rungs (the last trial's every ``n_epochs // 8`` epochs), before the trials are compared."""
+    rungs (the last trial's every ``n_epochs // 8`` epochs and where it stalls), before the
+    trials are compared: a trial runs ``ceil(epochs / rung)`` polishes."""
     rung = _rung(n_epochs)
     alive = list(range(len(runs)))
     while len(alive) > 1:
@@ -889,7 +891,10 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     (t,) = alive
     while (done := len(runs[t].history) - 1) < n_epochs and not runs[t].stalled():
         runs[t].advance(min(rung, n_epochs - done), search, t, progress, stall=True)
+        stalled = runs[t].stalled()
         runs[t].polish(polish, search)
+        if stalled:  # its swarm is done; a polish that gains does not send it on
+            break
 
 
 def _rung(n_epochs: int) -> int:
@@ -913,7 +918,8 @@ def fit_budget(
 ) -> tuple[int, int]:
     """The most swarm epochs (each ``n_agents`` evaluations) and polishes (refinements of a
     trial's best, each about as dear as 70 evaluations) that :func:`fit_wrinkles` with these
-    settings runs: all of them in paper mode; in fast mode a field of trials halved after every
+    settings runs (fitting drawing parameters, as the default names do; without them nothing
+    is refined): all of them in paper mode; in fast mode a field of trials halved after every
     rung, then the last trial on to ``n_epochs`` (fewer when it stalls)."""
     mode = _checks.choice(mode, "mode", ("fast", "paper"))
     n_agents = _checks.integer(n_agents, "n_agents", low=3)
