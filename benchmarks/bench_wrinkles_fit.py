@@ -211,6 +211,7 @@ def main() -> None:
                     epochs_run=list(fit.epochs_run),
                     evaluations=args.agents * sum(e + 1 for e in fit.epochs_run),
                     polishes=polish_count(fit, mode, args),
+                    refined_from_each_start=[float(v) for v in fit.refined_losses],
                     nonfinite_evaluations=int(np.sum(np.asarray(fit.swarm.n_nonfinite))),
                     **extra,
                 )

@@ -16,7 +16,7 @@ from jface._compilation import kept_arrays, kept_path
 from jface.cli import main
 from jface.io import write_exr
 from jface.optim import texture_stats
-from jface.optim._pso import swarm_settings
+from jface.optim._pso import Swarm, swarm_settings
 from jface.wrinkles import WrinkleParams, _fit, fit_budget, fit_wrinkles
 from jface.wrinkles._fit import (
     _draw,
@@ -117,8 +117,35 @@ def test_refinement_compiles_once_while_the_swarm_runs(target, caplog):
         for name, value in before.items():
             jax.config.update(name, value)
     compiles = [r for r in caplog.records if "XLA compilation of jit(_refined)" in r.getMessage()]
+    # one program for every start: the swarm's best and its two other agents' personal bests
     assert len(compiles) == 1 and compiles[0].threadName != "MainThread"
     assert float(fit.loss) <= float(fit.swarm_loss) and not fit.interrupted
+    assert len(fit.refined_losses) == 3 and float(fit.loss) == float(min(fit.refined_losses))
+    assert float(fit.refined_losses[0]) <= float(fit.swarm_loss)
+
+
+def test_refinement_starts_are_the_finished_trials_bests_then_the_best_ones_next():
+    """Hand-worked: trial 1 (unfinished) is left out although it is the best; the finished
+    trials' bests come first (best first), then trial 0's next personal bests by loss, without
+    the agent whose personal best repeats its best nor the one that never had a finite loss."""
+    low, high = np.zeros(2, np.float32), np.full(2, 2.0, np.float32)
+
+    def trial(ps, p):
+        run = _fit._Trial(jax.random.key(0), _Bowl(jax.random.key(0), jnp.zeros(2)))
+        p, zero = jnp.asarray(p, jnp.float32), jnp.zeros((), jnp.int32)
+        run.swarm = Swarm(p, p, p, jnp.asarray(ps, jnp.float32), zero, zero, zero)
+        return run
+
+    a, b, c, d = [0.1, 0.1], [0.2, 0.2], [0.3, 0.3], [0.4, 0.4]
+    runs = [trial([2.0, 1.0, 1.5, 1.0, np.inf], [a, b, c, b, d]), trial([0.5], [a]),
+            trial([1.2, 3.0], [d, a])]  # fmt: skip
+    starts = _fit._starts(runs, [0, 2], low, high, 10)
+    assert [t for t, _, _ in starts] == [0, 2, 0, 0]
+    np.testing.assert_array_equal([loss for _, _, loss in starts], np.float32([1, 1.2, 1.5, 2]))
+    for (_, params, _), point in zip(starts, [b, d, c, a], strict=True):
+        np.testing.assert_allclose(params, 2 * np.asarray(point))  # the caller's units
+    assert [t for t, _, _ in _fit._starts(runs, [0, 2], low, high, 3)] == [0, 2, 0]
+    assert len(_fit._starts(runs, [2], low, high, 0)) == 1
 
 
 def test_size_classes_give_the_whole_grids_losses(target, layout):
@@ -290,10 +317,11 @@ def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
     fit = fit_wrinkles(jax.random.key(1), target, names=names, base=TRUE, n_trials=2,
                        refine_steps=2, **small)  # fmt: skip
     assert sorted(fit.epochs_run) == [1, 8]
-    # two after the first rung, seven after the last trial's epochs 2-8, then the final one
-    assert len(polished) == 2 + 7 + 1
+    # two after the first rung, seven after the last trial's epochs 2-8, then the final
+    # refinement from its three agents' personal bests
+    assert len(polished) == 2 + 7 + 3
     assert fit_budget(3, 8, 2, refine_steps=2) == (1 + 8, 2 + 7)  # what the fit ran
-    winner = [(start, loss) for key, start, loss in polished[:-1] if jnp.array_equal(
+    winner = [(start, loss) for key, start, loss in polished[:-3] if jnp.array_equal(
         jax.random.key_data(key), jax.random.key_data(fit.sim_key))]  # fmt: skip
     assert len(winner) == 8  # after each of its epochs 1-8
     # a polish that gained became the trial's best at that epoch (and stays in the history)

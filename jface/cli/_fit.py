@@ -25,6 +25,7 @@ from jface.cli._processes import Elsewhere, add_process_options, spread
 from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import (
+    REFINE_STARTS,
     REFINE_STEPS,
     ParamUnits,
     fit_budget,
@@ -306,10 +307,10 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     total, polishes = fit_budget(
         args.agents, args.epochs, args.trials, refine_steps=args.refine_steps, mode=mode
     )
-    # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², a polish about 70 of those,
-    # plus about 2 min of fixed cost (1 min when an earlier fit of this patch size left its
-    # compiled programs cached)
-    evaluations = total * args.agents + polishes * 70
+    # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², a refinement step about 7 of
+    # those (polishes and the final refinement's starts), plus about 2 min of fixed cost (1 min
+    # when an earlier fit of this patch size left its compiled programs cached)
+    evaluations = total * args.agents + (polishes + REFINE_STARTS) * 7 * args.refine_steps
     minutes = (evaluations * 0.16 * patch.size / 256**2 + 120) / 60
     print(
         f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "
@@ -347,6 +348,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
         "fit": {
             "loss": float(fit.loss),
             "swarm_loss": float(fit.swarm_loss),
+            "refined_losses": np.asarray(fit.refined_losses).tolist(),
             "trial_losses": np.asarray(fit.swarm.trial_losses).tolist(),
             "nonfinite_losses": np.asarray(fit.swarm.n_nonfinite).tolist(),
             "names": list(fit.names),

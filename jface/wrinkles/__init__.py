@@ -40,6 +40,7 @@ from jface.wrinkles._extraction import (
 from jface.wrinkles._fit import (
     PAPER_NAMES,
     POLISH_FROM,
+    REFINE_STARTS,
     REFINE_STEPS,
     WrinkleFit,
     fit_budget,
@@ -94,6 +95,7 @@ __all__ = [
     "PAPER_NAMES",
     "PARAMETER_RANGES",
     "POLISH_FROM",
+    "REFINE_STARTS",
     "REFINE_STEPS",
     "Bands",
     "GraphSpec",
