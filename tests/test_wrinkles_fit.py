@@ -277,25 +277,32 @@ def test_polished_bests_join_their_swarms_and_the_race():
     assert trial.swarm is before[0]
 
 
-def test_a_stalled_trial_is_polished_once_and_stops():
-    """The last trial's swarm stalls on the lifted bowl; the polish where it stalls gains (here
-    a half, only there) but does not send it on: it stopped before ``n_epochs``, with one
-    polish per started rung, as :func:`fit_budget` counts them."""
+def test_a_stalled_trial_goes_on_after_a_gaining_polish_and_stops_after_one_that_is_not():
+    """The last trial's swarm stalls on the lifted bowl, judged at the ends of its rungs of 10
+    epochs, after their polishes: the first stalled polish gains (a half) and sends it on; it
+    stalls again 10 epochs later, where the polish gains nothing, and it stops there, with one
+    polish per rung, as :func:`fit_budget` counts them."""
     low, high = np.zeros(2, np.float32), np.full(2, 2.0, np.float32)
     search = (low, high, np.zeros(2, bool), swarm_settings(4, batched=True))
     centre = np.array([0.5, 1.5], np.float32)
     (run,) = runs = [_fit._Trial(jax.random.key(0), _Bowl(jax.random.key(1), centre, 1.0))]
-    polished = []
+    polished, gains = [], []
 
     def polish(sim_key, best, start):
         polished.append(len(run.history) - 1)
-        return centre, start * (0.5 if run.stalled() else 2.0)  # gains only where stalled
+        gain = run.stalled() and not gains  # the first stalled polish halves the loss
+        gains.append(gain) if gain else None
+        return centre, start * (0.5 if gain else 2.0)
 
     _fit._halve(runs, 80, search, None, polish)  # rungs of 10 epochs
     epochs = len(run.history) - 1
-    assert run.stalled() is False and 10 < epochs < 80  # stopped early, its stall polished away
-    assert polished == [*range(10, epochs, 10), epochs] and epochs % 10 != 0
-    assert run.history[-1] == pytest.approx(0.5 * run.history[-2], rel=1e-6)
+    assert run.stalled() and 20 < epochs < 80 and epochs % 10 == 0
+    assert polished == list(range(10, epochs + 1, 10)) and gains == [True]
+    revived = epochs - 10  # where the gaining polish was: the history's only halving
+    # (its swarm had stalled: the epoch before was as good within the stall's tolerance)
+    halved = 0.5 * run.history[revived - 1]
+    assert run.history[revived] == pytest.approx(halved, rel=_fit.STALL_TOLERANCE)
+    assert run.history[revived] == run.history[-1]  # nothing beat the polished best since
     assert len(polished) == -(-epochs // 10) <= fit_budget(30, 80, 1, refine_steps=1)[1] == 8
 
 

@@ -685,11 +685,11 @@ def fit_wrinkles(
             ``n_epochs // 8`` epochs, the better half goes on; the last runs up to ``n_epochs``)
             and the swarm stops when its best loss fell by less than 0.1 % over 10 epochs;
             when a rung holds :data:`POLISH_FROM` evaluations or more, every trial's best is
-            refined (as at the end) after each of its rungs (and where the last one stalls)
-            and, when that gains and stays in the search box, rejoins its swarm as its best
-            agent's personal best, so the race compares refined answers (``progress`` saw the
-            epoch's best before; a stalled trial stops all the same); ``"paper"``: every
-            trial runs all ``n_epochs`` (the paper's procedure).
+            refined (as at the end) after each of its rungs and, when that gains and stays in
+            the search box, rejoins its swarm as its best agent's personal best, so the race
+            compares refined answers (``progress`` saw the epoch's best before), and the last
+            trial's stall is judged after each rung's polish; ``"paper"``: every trial runs
+            all ``n_epochs`` (the paper's procedure).
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
             found so far, unrefined, with ``interrupted`` set.
@@ -897,8 +897,9 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs, the better half
     goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
     early when it stalls. With ``polish``, every trial's best is polished after each of its
-    rungs (the last trial's every ``n_epochs // 8`` epochs and where it stalls), before the
-    trials are compared: a trial runs ``ceil(epochs / rung)`` polishes. Returns the last trial."""
+    rungs, before the trials are compared, and the last trial runs whole rungs, stopping when it
+    is still stalled after a rung's polish: a trial runs ``ceil(epochs / rung)`` polishes.
+    Returns the last trial."""
     rung = _rung(n_epochs)
     alive = list(range(len(runs)))
     while len(alive) > 1:
@@ -907,12 +908,11 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
             runs[t].polish(polish, search)
         alive = sorted(alive, key=lambda t: runs[t].history[-1])[: -(-len(alive) // 2)]
     (t,) = alive
+    # a polishing fit runs whole rungs and judges its stall after the rung's polish (one that
+    # gains sends the swarm on from the polished best)
     while (done := len(runs[t].history) - 1) < n_epochs and not runs[t].stalled():
-        runs[t].advance(min(rung, n_epochs - done), search, t, progress, stall=True)
-        stalled = runs[t].stalled()
+        runs[t].advance(min(rung, n_epochs - done), search, t, progress, stall=polish is None)
         runs[t].polish(polish, search)
-        if stalled:  # its swarm is done; a polish that gains does not send it on
-            break
     return t
 
 
