@@ -357,6 +357,28 @@ def test_interrupt_keeps_the_best_so_far(target):
     assert fit.fitted.shape == (64, 64)
 
 
+def test_interrupt_while_refining_keeps_the_starts_refined_so_far(target, monkeypatch):
+    """Ctrl-C during the final refinement's second start: the fit reports the first start's
+    refined answer (not the swarm's unrefined one), interrupted."""
+    refined = []
+
+    def refine(*args):
+        if refined:
+            raise KeyboardInterrupt
+        refined.append(_refine(*args))
+        return refined[-1]
+
+    monkeypatch.setattr(_fit, "_refine", refine)
+    small = dict(SMALL, n_agents=3, n_epochs=1)  # no polish: the first call is the first start
+    fit = fit_wrinkles(jax.random.key(1), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
+                       n_trials=1, refine_steps=2, **small)  # fmt: skip
+    assert fit.interrupted and len(fit.refined_losses) == 1
+    levels, loss, image = refined[0]
+    assert float(fit.loss) == float(loss) <= float(fit.swarm_loss)
+    np.testing.assert_array_equal(fit.fitted, image)
+    assert float(fit.levels[0].wrinkle_width) == float(levels[0].wrinkle_width)
+
+
 def test_cli_interrupt_writes_the_best_so_far(tmp_path, monkeypatch, target):
     from jface.cli import _fit as cli_fit
 

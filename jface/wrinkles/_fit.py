@@ -107,10 +107,11 @@ class WrinkleFit(eqx.Module):
         names: the fitted parameter names, in the order of ``swarm.params`` (static).
         sim_key: the simulation key of the trial whose answer won (reproduces ``fitted``).
         fitted: the synthesised map of ``levels``, ``(H, W)``.
-        interrupted: the fit was stopped (Ctrl-C) and reports the best found so far, unrefined.
+        interrupted: the fit was stopped (Ctrl-C) and reports the best found so far: the
+            swarm's, unrefined, or when stopped while refining, the best start refined by then.
         epochs_run: epochs each trial ran (static).
-        refined_losses: loss of each start of the final refinement (:data:`REFINE_STARTS`, best
-            swarm loss first); ``loss`` is the least (empty when interrupted).
+        refined_losses: loss of each start of the final refinement (:data:`REFINE_STARTS`, the
+            swarm's best first); ``loss`` is the least (empty when interrupted before any).
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
@@ -692,7 +693,8 @@ def fit_wrinkles(
             all ``n_epochs`` (the paper's procedure).
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
-            found so far, unrefined, with ``interrupted`` set.
+            found so far (unrefined; while refining: the best start refined by then), with
+            ``interrupted`` set.
         devices: devices the swarm's agents are sharded over (``jax.sharding``; default: all of
             this process's devices, :func:`jax.local_devices`); the agents are padded to a
             multiple of the device count with copies of agent 0. The result has the same bits
@@ -802,21 +804,21 @@ def fit_wrinkles(
         interrupted = True
     swarm = _result(runs, low, high)
     epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
+    answers = []  # (trial, levels, loss, map) of each refined start
     if not interrupted:
         starts = _starts(runs, finished, low, high, REFINE_STARTS if refine_steps else 1)
         try:
             if refine_steps:
                 ahead.join()
-            answers = []
             for t, params, start in starts:
                 levels = _levels_from(jnp.asarray(params), names, base)
                 answers.append(
                     (t, *_refine(sim_keys[t], levels, start, refining, target_stats, fields,
                                  refine_steps))
                 )  # fmt: skip
-        except KeyboardInterrupt:  # Ctrl-C while refining: the swarm's answer, as below
+        except KeyboardInterrupt:  # Ctrl-C while refining: the starts refined so far
             interrupted = True
-    if interrupted:  # the answer as it is, unrefined (a compile ahead may still be running)
+    if not answers:  # the swarm's answer as it is, unrefined (a compile may still be running)
         sim_key = sim_keys[int(swarm.best_trial)]
         levels = _levels_from(swarm.params, names, base)
         levels, _, image = _refine(sim_key, levels, swarm.loss, refining, target_stats, (), 0)
@@ -826,7 +828,7 @@ def fit_wrinkles(
     t, refined, loss, image = min(answers, key=lambda a: float(a[2]))  # the first of equals
     refined_losses = jnp.stack([a[2] for a in answers])
     return WrinkleFit(
-        refined, loss, swarm.loss, swarm, names, sim_keys[t], image, False, epochs,
+        refined, loss, swarm.loss, swarm, names, sim_keys[t], image, interrupted, epochs,
         refined_losses,
     )  # fmt: skip
 
