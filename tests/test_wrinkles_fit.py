@@ -124,6 +124,27 @@ def test_refinement_compiles_once_while_the_swarm_runs(target, caplog):
     assert float(fit.refined_losses[0]) <= float(fit.swarm_loss)
 
 
+def test_paper_mode_keeps_another_trials_answer_with_its_own_key(target, monkeypatch):
+    """Each start is refined with its own trial's simulation key: made to refine best, the
+    second start (the other trial's best) gives the fit's answer, key and trial."""
+    keys = []
+
+    def refine(sim_key, levels, start, *args):
+        drawn, loss, image = _refine(sim_key, levels, start, *args)
+        keys.append(jax.random.key_data(sim_key))
+        return drawn, loss - (1.0 if len(keys) == 2 else 0.0), image
+
+    monkeypatch.setattr(_fit, "_refine", refine)
+    small = dict(SMALL, n_agents=3, n_epochs=1)
+    fit = fit_wrinkles(jax.random.key(1), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
+                       n_trials=2, refine_steps=2, mode="paper", **small)  # fmt: skip
+    assert fit.answer_trial == 1 - int(fit.swarm.best_trial) and len(keys) >= 2
+    assert not jnp.array_equal(keys[0], keys[1])
+    assert jnp.array_equal(keys[1], jax.random.key_data(fit.sim_key))
+    assert all(jnp.array_equal(keys[0], k) for k in keys[2:])  # the best trial's next agents
+    assert float(fit.loss) == float(fit.refined_losses[1]) == float(min(fit.refined_losses))
+
+
 def test_refinement_starts_are_the_finished_trials_bests_then_the_best_ones_next():
     """Hand-worked: trial 1 (unfinished) is left out although it is the best; the finished
     trials' bests come first (best first), then trial 0's next personal bests by loss, without

@@ -349,6 +349,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
             "loss": float(fit.loss),
             "swarm_loss": float(fit.swarm_loss),
             "refined_losses": np.asarray(fit.refined_losses).tolist(),
+            "answer_trial": fit.answer_trial,
             "trial_losses": np.asarray(fit.swarm.trial_losses).tolist(),
             "nonfinite_losses": np.asarray(fit.swarm.n_nonfinite).tolist(),
             "names": list(fit.names),

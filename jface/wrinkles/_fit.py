@@ -105,13 +105,16 @@ class WrinkleFit(eqx.Module):
             fast mode's full fits the swarm's bests were already polished by it on the way).
         swarm: the :class:`jface.optim.PSOResult` (history for a convergence plot).
         names: the fitted parameter names, in the order of ``swarm.params`` (static).
-        sim_key: the simulation key of the trial whose answer won (reproduces ``fitted``).
+        sim_key: the simulation key of ``answer_trial`` (reproduces ``fitted``).
         fitted: the synthesised map of ``levels``, ``(H, W)``.
         interrupted: the fit was stopped (Ctrl-C) and reports the best found so far: the
             swarm's, unrefined, or when stopped while refining, the best start refined by then.
         epochs_run: epochs each trial ran (static).
-        refined_losses: loss of each start of the final refinement (:data:`REFINE_STARTS`, the
-            swarm's best first); ``loss`` is the least (empty when interrupted before any).
+        refined_losses: loss of each start of the final refinement (up to
+            :data:`REFINE_STARTS`, the swarm's best first; one without drawing fields to refine);
+            ``loss`` is the least (empty when interrupted before any).
+        answer_trial: the trial whose answer ``levels`` is (static; in paper mode not always
+            ``swarm.best_trial``: another trial's answer can refine better).
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
@@ -124,6 +127,7 @@ class WrinkleFit(eqx.Module):
     interrupted: bool = eqx.field(static=True, default=False)
     epochs_run: tuple[int, ...] = eqx.field(static=True, default=())
     refined_losses: Float[Array, " S"] = eqx.field(default_factory=lambda: jnp.zeros(0))
+    answer_trial: int = eqx.field(static=True, default=0)
 
 
 class _Layout(eqx.Module):
@@ -677,7 +681,7 @@ def fit_wrinkles(
         d_range: search range of α_d (fixes the pore capacities).
         n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
         n_steps: simulation steps per level (paper: 50).
-        refine_steps: BFGS steps on the drawing parameters afterwards, from each of
+        refine_steps: BFGS steps on the drawing parameters afterwards, from each of up to
             :data:`REFINE_STARTS` starts (0: none; default: :data:`REFINE_STEPS` of the mode).
         d_levels: α_d values (evenly spaced over ``d_range``) whose pores and graphs are built
             once (default: :data:`D_LEVELS` of the mode); an agent simulates with the nearest,
@@ -806,8 +810,8 @@ def fit_wrinkles(
     epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
     answers = []  # (trial, levels, loss, map) of each refined start
     if not interrupted:
-        starts = _starts(runs, finished, low, high, REFINE_STARTS if refine_steps else 1)
         try:
+            starts = _starts(runs, finished, low, high, REFINE_STARTS if refine_steps else 1)
             if refine_steps:
                 ahead.join()
             for t, params, start in starts:
@@ -823,13 +827,14 @@ def fit_wrinkles(
         levels = _levels_from(swarm.params, names, base)
         levels, _, image = _refine(sim_key, levels, swarm.loss, refining, target_stats, (), 0)
         return WrinkleFit(
-            levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs
-        )
+            levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs,
+            answer_trial=int(swarm.best_trial),
+        )  # fmt: skip
     t, refined, loss, image = min(answers, key=lambda a: float(a[2]))  # the first of equals
     refined_losses = jnp.stack([a[2] for a in answers])
     return WrinkleFit(
         refined, loss, swarm.loss, swarm, names, sim_keys[t], image, interrupted, epochs,
-        refined_losses,
+        refined_losses, t,
     )  # fmt: skip
 
 
@@ -899,9 +904,9 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs, the better half
     goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
     early when it stalls. With ``polish``, every trial's best is polished after each of its
-    rungs, before the trials are compared, and the last trial runs whole rungs, stopping when it
-    is still stalled after a rung's polish: a trial runs ``ceil(epochs / rung)`` polishes.
-    Returns the last trial."""
+    rungs, before the trials are compared, and the last trial runs whole rungs (the last one
+    cut at ``n_epochs``), stopping when it is still stalled after a rung's polish: a trial runs
+    ``ceil(epochs / rung)`` polishes. Returns the last trial."""
     rung = _rung(n_epochs)
     alive = list(range(len(runs)))
     while len(alive) > 1:
