@@ -64,16 +64,24 @@ def compile_ahead(jitted: Callable, *args) -> threading.Thread:
 
 
 def kept_arrays(
-    what: str, settings: tuple, build: Callable[[], dict[str, np.ndarray]]
+    what: str,
+    settings: tuple,
+    build: Callable[[], dict[str, np.ndarray]],
+    shipped: Path | None = None,
 ) -> dict[str, np.ndarray]:
     """``build()``, kept on disk (``jface-<what>/`` in the compiled programs' folder) when
-    compiled programs are kept, so that a rerun with the same ``settings`` reads it instead.
+    compiled programs are kept, so that a rerun with the same ``settings`` reads it instead;
+    read from the ``shipped`` file (:func:`shipped_arrays`) when jface ships it.
 
     The file's name hashes ``settings`` with this jface's source, the JAX version and the
     precision, so a change of any of them builds anew. A file that cannot be read (truncated,
     corrupt) is built again and replaced; one that cannot be written is skipped (the answer is
     the same, the next run builds it too).
     """
+    arrays = None if shipped is None else _read_kept(shipped)
+    prefix = f"{what}.{_digest(settings)}."
+    if arrays is not None and (found := _entries(arrays, prefix)):
+        return found
     path = kept_path(what, settings)
     if path is None:
         return build()
@@ -81,8 +89,24 @@ def kept_arrays(
     if arrays is None:
         arrays = build()
         with contextlib.suppress(OSError):  # unwritable: the next run builds it too
-            _write_kept(path, arrays)
+            write_arrays(path, arrays)
     return arrays
+
+
+def shipped_arrays(what: str, settings: tuple, arrays: dict[str, np.ndarray]) -> dict:
+    """``arrays`` named for a file of arrays that jface ships, where :func:`kept_arrays` finds
+    them as ``what`` of ``settings`` (merge several into one file, written by
+    :func:`write_arrays`). Unlike a kept file's, the name holds neither the source nor the JAX
+    version: a shipped file stands until its test finds that a build differs."""
+    return {f"{what}.{_digest(settings)}.{name}": a for name, a in arrays.items()}
+
+
+def _digest(settings: tuple) -> str:
+    return hashlib.sha256(repr(settings).encode()).hexdigest()[:16]
+
+
+def _entries(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    return {k[len(prefix) :]: a for k, a in arrays.items() if k.startswith(prefix)}
 
 
 def _read_kept(path: Path) -> dict[str, np.ndarray] | None:
@@ -94,15 +118,15 @@ def _read_kept(path: Path) -> dict[str, np.ndarray] | None:
         return None
 
 
-def _write_kept(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write ``path`` through a temporary file and a rename, so readers see all of it or none.
-    Not :func:`jface.io.atomic_path`: inside a command's session that would stage the file as
-    one of the command's outputs."""
+def write_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write ``path`` (compressed) through a temporary file and a rename, so readers see all of
+    it or none. Not :func:`jface.io.atomic_path`: inside a command's session that would stage
+    the file as one of the command's outputs."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}~", suffix=".npz", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            np.savez_compressed(f, **arrays)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -56,3 +56,24 @@ def test_kept_path_names_settings_and_source():
     a, b = _compilation.kept_path("things", (1,)), _compilation.kept_path("things", (2,))
     assert a != b and a.parent == b.parent and a.parent.name == "jface-things"
     assert a == _compilation.kept_path("things", (1,))
+
+
+def test_shipped_arrays_are_read_before_anything_is_built(tmp_path, monkeypatch):
+    monkeypatch.setattr(_compilation, "kept_path", lambda what, settings: None)
+    shipped = tmp_path / "shipped.npz"
+    arrays = {"x": np.arange(3, dtype=np.int16), "0.y": np.ones(2, bool)}
+    _compilation.write_arrays(shipped, _compilation.shipped_arrays("things", (1, "a"), arrays))
+    build, calls = counting({"x": np.zeros(3)})
+    got = _compilation.kept_arrays("things", (1, "a"), build, shipped)
+    assert not calls and got.keys() == arrays.keys()
+    assert all(got[k].dtype == a.dtype and np.array_equal(got[k], a) for k, a in arrays.items())
+    for what, settings in (("things", (2, "a")), ("other", (1, "a"))):  # not shipped: built
+        assert np.array_equal(
+            _compilation.kept_arrays(what, settings, build, shipped)["x"], np.zeros(3)
+        )
+    assert len(calls) == 2
+    shipped.write_bytes(b"PK\x03\x04 not a whole zip")  # a damaged install builds
+    assert np.array_equal(
+        _compilation.kept_arrays("things", (1, "a"), build, shipped)["x"], np.zeros(3)
+    )
+    assert len(calls) == 3

@@ -2,6 +2,7 @@
 gradient refinement, the CLI, bad input. A small setting (64², α_d near its top, few agents):
 the fitted pipeline compiles once per module."""
 
+import inspect
 import json
 import logging
 
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import TINY_FIT
 
+from jface import _compilation
 from jface._compilation import kept_arrays, kept_path
 from jface.cli import main
 from jface.io import write_exr
@@ -494,3 +496,29 @@ def test_a_rerun_reads_the_layout_kept_on_disk(monkeypatch):
     other = _fit._kept_layout(key, (72, 72), *rest)  # a size no earlier run may have kept
     assert built == ["sizes"]  # the design kept in memory
     same(other, _layout(key, (72, 72), *rest))
+
+
+def test_the_shipped_layouts_are_what_a_build_gives(monkeypatch):
+    """jface ships the default fast fit's design and its draw sizes at common patch sizes (a
+    first fit spent half a minute building them): a default fit of those sizes builds nothing,
+    and a build now gives the same arrays (else ``python -m jface.wrinkles._ship`` rebuilds the
+    file)."""
+    key, d_levels, n_steps = _fit.layout_key(), _fit.D_LEVELS["fast"], 50
+    assert inspect.signature(fit_wrinkles).parameters["n_steps"].default == n_steps
+    monkeypatch.setattr(_fit, "_LAYOUTS", {})
+    monkeypatch.setattr(_fit, "_DESIGNS", {})
+    monkeypatch.setattr(_compilation, "kept_path", lambda *a: pytest.fail("looked for a kept file"))
+    for build in ("_design", "_draw_entries"):
+        monkeypatch.setattr(_fit, build, lambda *a: pytest.fail("built a shipped layout"))
+    shipped = {
+        n: _fit._kept_layout(key, (n, n), _fit.D_RANGE, n_steps, d_levels)
+        for n in _fit.SHIPPED_SIZES
+    }
+    monkeypatch.undo()
+    design = _fit._design(key, _fit.D_RANGE, d_levels)
+    n = min(_fit.SHIPPED_SIZES)
+    fresh = _fit._sized(design, (n, n), n_steps, _fit._draw_entries(key, design, (n, n), n_steps))
+    assert jax.tree.structure(shipped[n]) == jax.tree.structure(fresh)
+    for a, b in zip(jax.tree.leaves(shipped[n]), jax.tree.leaves(fresh), strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert len({layout.entries for layout in shipped.values()}) == len(shipped)

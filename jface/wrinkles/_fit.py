@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -35,7 +36,13 @@ from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float
 
 from jface import _checks
-from jface._compilation import QUICK_COMPILE, compile_ahead, kept_arrays
+from jface._compilation import (
+    QUICK_COMPILE,
+    compile_ahead,
+    kept_arrays,
+    shipped_arrays,
+    write_arrays,
+)
 from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
 from jface.optim._pso import Swarm, swarm_epoch, swarm_settings, swarm_start
 from jface.optim._texture import _stats
@@ -49,12 +56,15 @@ from jface.wrinkles._drawing import (
     render,
 )
 from jface.wrinkles._graph import (
+    GRAPH_TABLES,
     PoreGraph,
     _round_up,
     built,
     covering_spec,
     cut_slots,
     graph_errors,
+    graph_from_tables,
+    graph_tables,
     trim_batch,
 )
 from jface.wrinkles._params import PARAMETER_RANGES, WrinkleParams
@@ -233,7 +243,9 @@ def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     (:func:`jface._compilation.keep_compiled_programs`, as the command line does), on disk, so
     that a rerun reads it (the layout runs for seconds after its programs are compiled). Its
     design is kept once for every patch size, so a fit of another size builds only its draw
-    sizes."""
+    sizes. jface ships the default fast fit's design and its draw sizes at
+    :data:`SHIPPED_SIZES` (:data:`SHIPPED_LAYOUTS`), which a first fit would otherwise spend
+    half a minute building."""
     name = _layout_name(key, size, d_range, n_steps, d_levels)
 
     def build() -> _Layout:
@@ -242,7 +254,7 @@ def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
         def draw_sizes():
             return {"entries": np.asarray(_draw_entries(key, design, size, n_steps))}
 
-        entries = kept_arrays("layouts", name, draw_sizes)["entries"]
+        entries = kept_arrays("layouts", name, draw_sizes, SHIPPED_LAYOUTS)["entries"]
         return _sized(design, size, n_steps, tuple(map(int, entries)))
 
     return _remembered(_LAYOUTS, name, build)
@@ -251,13 +263,34 @@ def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
 def _kept_design(key, d_range, d_levels) -> _Design:
     """:func:`_design`, kept as :func:`_kept_layout` keeps a layout."""
     name = _design_name(key, d_range, d_levels)
+
+    def build():
+        return _design_arrays(_design(key, d_range, d_levels))
+
     return _remembered(
-        _DESIGNS,
-        name,
-        lambda: _design_from(
-            kept_arrays("designs", name, lambda: _design_arrays(_design(key, d_range, d_levels)))
-        ),
+        _DESIGNS, name, lambda: _design_from(kept_arrays("designs", name, build, SHIPPED_LAYOUTS))
     )
+
+
+#: The file of layouts that jface ships: the default fast fit's design and its draw sizes at
+#: :data:`SHIPPED_SIZES`, written by ``python -m jface.wrinkles._ship`` (which a change to the
+#: pores, graphs, simulation or drawing calls for; its test finds that a build differs).
+SHIPPED_LAYOUTS = Path(__file__).with_name("fit_layouts.npz")
+
+#: Square patch sizes whose draw sizes jface ships (with the default 50 simulation steps).
+SHIPPED_SIZES = (64, 128, 256, 512)
+
+
+def ship_layouts(path: Path = SHIPPED_LAYOUTS) -> None:
+    """Build the layouts :data:`SHIPPED_LAYOUTS` holds and write them to ``path``."""
+    key, d_levels, n_steps = layout_key(), D_LEVELS["fast"], 50
+    design = _design(key, D_RANGE, d_levels)
+    arrays = shipped_arrays("designs", _design_name(key, D_RANGE, d_levels), _design_arrays(design))
+    for n in SHIPPED_SIZES:
+        entries = np.asarray(_draw_entries(key, design, (n, n), n_steps))
+        name = _layout_name(key, (n, n), D_RANGE, n_steps, d_levels)
+        arrays |= shipped_arrays("layouts", name, {"entries": entries})
+    write_arrays(path, arrays)
 
 
 def _remembered(memo: dict, name: tuple, build):
@@ -280,24 +313,28 @@ def _layout_name(key, size, d_range, n_steps, d_levels) -> tuple:
     return (*_design_name(key, d_range, d_levels), tuple(map(int, size)), int(n_steps))
 
 
-_GRAPH_ARRAYS = tuple(f.name for f in dataclasses.fields(PoreGraph) if not f.metadata.get("static"))
+_INT16 = np.iinfo(np.int16)
 
 
 def _design_arrays(design: _Design) -> dict[str, np.ndarray]:
-    """The design as named arrays, for :func:`_design_from`."""
+    """The design as named arrays (graphs as their tables, indices in 16 bits where they fit),
+    for :func:`_design_from`."""
     arrays = {"d_values": np.asarray(design.d_values)}
     for field in ("n_samples", "split", "slots"):
         arrays[field] = np.asarray(getattr(design, field))
     for level, graph in enumerate(design.graphs):
         arrays[f"{level}.periodic"] = np.asarray(graph.periodic)
-        arrays.update({f"{level}.{f}": np.asarray(getattr(graph, f)) for f in _GRAPH_ARRAYS})
+        for field, a in graph_tables(graph).items():
+            fits = a.size > 0 and _INT16.min <= a.min() <= a.max() <= _INT16.max
+            narrow = a.dtype == np.int32 and fits
+            arrays[f"{level}.{field}"] = a.astype(np.int16) if narrow else a
     return arrays
 
 
 def _design_from(arrays: dict[str, np.ndarray]) -> _Design:
     graphs = tuple(
-        PoreGraph(
-            **{f: jnp.asarray(arrays[f"{level}.{f}"]) for f in _GRAPH_ARRAYS},
+        graph_from_tables(
+            {f: arrays[f"{level}.{f}"] for f in GRAPH_TABLES},
             periodic=bool(arrays[f"{level}.periodic"]),
         )
         for level in range(2)

@@ -228,8 +228,6 @@ def _topology(positions, mask, count, *, k, deg, grid, cell_cap, reach, periodic
         jnp.zeros(n_edges, jnp.int32).at[eid_flat].set(jnp.maximum(i, nbr).reshape(-1), mode="drop")
     )
     edge_mask = jnp.arange(n_edges, dtype=jnp.int32) < edge_count
-    edge_delta = _wrap(positions[edge_b] - positions[edge_a], periodic)
-    edge_delta = jnp.where(edge_mask[:, None], edge_delta, 0.0)
 
     # half-edges: the pore's own k entries, then the entries of pores that list it unmirrored
     extra = (valid & ~mirrored).reshape(-1)
@@ -246,25 +244,73 @@ def _topology(positions, mask, count, *, k, deg, grid, cell_cap, reach, periodic
     half_mask = jnp.concatenate([valid, extra_ok], axis=1)
     half_target = jnp.where(half_mask, half_target, 0)
     half_edge = jnp.where(half_mask, half_edge, 0)
-    half_delta = _wrap(positions[half_target] - positions[:, None], periodic)
-    half_delta = jnp.where(half_mask[..., None], half_delta, 0.0)
-    half_length = jnp.sqrt(jnp.sum(half_delta * half_delta, axis=-1))
-    edge_length = jnp.sqrt(jnp.sum(edge_delta * edge_delta, axis=-1))
+    edge_nodes = jnp.stack([edge_a, edge_b], axis=-1)
     topo = dict(
         half_target=half_target,
         half_edge=half_edge,
-        half_angle=jnp.where(half_mask, _angle(half_delta), 0.0),
-        half_length=half_length,
         half_mask=half_mask,
-        edge_nodes=jnp.stack([edge_a, edge_b], axis=-1),
-        edge_delta=edge_delta,
-        edge_length=edge_length,
-        edge_angle=jnp.where(edge_mask, _angle(edge_delta), 0.0),
+        edge_nodes=edge_nodes,
         edge_mask=edge_mask,
         edge_count=edge_count,
+        **_geometry(positions, half_target, half_mask, edge_nodes, edge_mask, periodic),
     )
     flags = dict(cell=cell_overflow, inexact=jnp.any(inexact), degree=degree_overflow)
     return topo, flags
+
+
+def _geometry(positions, half_target, half_mask, edge_nodes, edge_mask, periodic) -> dict:
+    """The vectors, lengths and angles of the edges and half-edges (zero in unused slots): what
+    follows from the positions and the tables."""
+    edge_delta = _wrap(positions[edge_nodes[:, 1]] - positions[edge_nodes[:, 0]], periodic)
+    edge_delta = jnp.where(edge_mask[:, None], edge_delta, 0.0)
+    half_delta = _wrap(positions[half_target] - positions[:, None], periodic)
+    half_delta = jnp.where(half_mask[..., None], half_delta, 0.0)
+    return dict(
+        half_angle=jnp.where(half_mask, _angle(half_delta), 0.0),
+        half_length=jnp.sqrt(jnp.sum(half_delta * half_delta, axis=-1)),
+        edge_delta=edge_delta,
+        edge_length=jnp.sqrt(jnp.sum(edge_delta * edge_delta, axis=-1)),
+        edge_angle=jnp.where(edge_mask, _angle(edge_delta), 0.0),
+    )
+
+
+#: The arrays a graph is stored as (:func:`graph_tables`); the rest follows from them.
+GRAPH_TABLES = {
+    "positions": jnp.float32, "node_count": jnp.int32, "half_edge": jnp.int32,
+    "half_mask": jnp.bool_, "edge_nodes": jnp.int32, "edge_count": jnp.int32,
+    "crossings": jnp.int32, "crossing_mask": jnp.bool_,
+}  # fmt: skip
+
+
+def graph_tables(g: PoreGraph) -> dict[str, np.ndarray]:
+    """The arrays of :data:`GRAPH_TABLES` of ``g`` (a graph or a batch), about half its bytes:
+    :func:`graph_from_tables` rebuilds the same graph, bit for bit."""
+    return {f: np.asarray(getattr(g, f)) for f in GRAPH_TABLES}
+
+
+@functools.partial(jax.jit, static_argnames="periodic")
+def graph_from_tables(tables: dict, periodic: bool) -> PoreGraph:
+    """The graph (or batch, leading axis) whose :func:`graph_tables` are ``tables`` (integers of
+    any width)."""
+    tables = {f: jnp.asarray(tables[f], dtype) for f, dtype in GRAPH_TABLES.items()}
+    if tables["positions"].ndim == 3:
+        return jax.vmap(lambda t: graph_from_tables(t, periodic))(tables)
+    n, edges = tables["positions"].shape[0], tables["edge_nodes"]
+    node_mask = jnp.arange(n, dtype=jnp.int32) < tables["node_count"]
+    edge_mask = jnp.arange(edges.shape[0], dtype=jnp.int32) < tables["edge_count"]
+    half_mask = tables["half_mask"]
+    ends = edges[tables["half_edge"]]  # (n, D, 2): the half-edge's target is the other end
+    own = jnp.arange(n, dtype=jnp.int32)[:, None]
+    other = jnp.where(ends[..., 0] == own, ends[..., 1], ends[..., 0])
+    half_target = jnp.where(half_mask, other, 0)
+    return PoreGraph(
+        **tables,
+        node_mask=node_mask,
+        half_target=half_target,
+        edge_mask=edge_mask,
+        **_geometry(tables["positions"], half_target, half_mask, edges, edge_mask, periodic),
+        periodic=periodic,
+    )
 
 
 def _crosses(p2, q1, q2):
