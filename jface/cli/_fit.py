@@ -25,7 +25,6 @@ from jface.cli._processes import Elsewhere, add_process_options, spread
 from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import (
-    REFINE_STARTS,
     REFINE_STEPS,
     ParamUnits,
     fit_budget,
@@ -304,13 +303,13 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     stem = out.with_suffix("")
     patch = read_map(patch_path, args.channel)
     units = _units(args.patch_size, patch.shape)
-    total, polishes = fit_budget(
+    total, polishes, starts = fit_budget(
         args.agents, args.epochs, args.trials, refine_steps=args.refine_steps, mode=mode
     )
     # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², a refinement step about 7 of
     # those (polishes and the final refinement's starts), plus about 2 min of fixed cost (1 min
     # when an earlier fit of this patch size left its compiled programs cached)
-    evaluations = total * args.agents + (polishes + REFINE_STARTS) * 7 * args.refine_steps
+    evaluations = total * args.agents + (polishes + starts) * 7 * args.refine_steps
     minutes = (evaluations * 0.16 * patch.size / 256**2 + 120) / 60
     print(
         f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "

@@ -91,7 +91,9 @@ REFINE_STEPS = {"fast": 10, "paper": 30}
 #: Starts of the final refinement: the best answer of every trial that ran to its end (paper mode:
 #: all; fast mode: the race's winner), then that best trial's next personal bests, up to this many
 #: in all. The swarm's loss ranks answers poorly for what the refinement makes of them (on gravel,
-#: the paper mode's worst trial, 0.045, refined to 0.014 and its best, 0.032, to 0.021).
+#: the paper mode's worst trial, 0.045, refined to 0.014 and its best, 0.032, to 0.021). A fit
+#: takes the extra starts while they cost at most a tenth of its swarm's evaluations (a 256²
+#: exploratory fit of 40 evaluations spent 23 s on 4 starts, half its time warm).
 REFINE_STARTS = 4
 #: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
 STALL_TOLERANCE, PATIENCE = 1e-3, 10
@@ -696,6 +698,7 @@ def fit_wrinkles(
     n_trials: int = 3,
     n_steps: int = 50,
     refine_steps: int | None = None,
+    refine_starts: int | None = None,
     d_levels: int | None = None,
     mode: str = "fast",
     progress=None,
@@ -718,8 +721,10 @@ def fit_wrinkles(
         d_range: search range of α_d (fixes the pore capacities).
         n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
         n_steps: simulation steps per level (paper: 50).
-        refine_steps: BFGS steps on the drawing parameters afterwards, from each of up to
-            :data:`REFINE_STARTS` starts (0: none; default: :data:`REFINE_STEPS` of the mode).
+        refine_steps: BFGS steps on the drawing parameters afterwards, from each start (0: none;
+            default: :data:`REFINE_STEPS` of the mode).
+        refine_starts: starts of that refinement, at most (default: the third number of
+            :func:`fit_budget`, up to :data:`REFINE_STARTS`).
         d_levels: α_d values (evenly spaced over ``d_range``) whose pores and graphs are built
             once (default: :data:`D_LEVELS` of the mode); an agent simulates with the nearest,
             and that value is what the result reports.
@@ -796,6 +801,10 @@ def fit_wrinkles(
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     settings = swarm_settings(_checks.integer(n_agents, "n_agents", low=3), batched=True)
+    if refine_starts is None:
+        budget = (settings.n_agents, n_epochs, n_trials)
+        refine_starts = fit_budget(*budget, refine_steps=refine_steps, mode=mode)[2]
+    refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
     k_sim, k_swarm = jax.random.split(key)
     layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels)
     whole = layout.merged()
@@ -848,7 +857,7 @@ def fit_wrinkles(
     answers = []  # (trial, levels, loss, map) of each refined start
     if not interrupted:
         try:
-            starts = _starts(runs, finished, low, high, REFINE_STARTS if refine_steps else 1)
+            starts = _starts(runs, finished, low, high, refine_starts if refine_steps else 1)
             if refine_steps:
                 ahead.join()
             for t, params, start in starts:
@@ -978,27 +987,34 @@ def fit_budget(
     *,
     refine_steps: int | None = None,
     mode: str = "fast",
-) -> tuple[int, int]:
-    """The most swarm epochs (each ``n_agents`` evaluations) and polishes (refinements of a
-    trial's best, each about as dear as 70 evaluations) that :func:`fit_wrinkles` with these
-    settings runs (fitting drawing parameters, as the default names do; without them nothing
-    is refined): all of them in paper mode; in fast mode a field of trials halved after every
-    rung, then the last trial on to ``n_epochs`` (fewer when it stalls)."""
+) -> tuple[int, int, int]:
+    """The most swarm epochs (each ``n_agents`` evaluations), polishes (refinements of a
+    trial's best, each about as dear as ``7 * refine_steps`` evaluations) and starts of the
+    final refinement that :func:`fit_wrinkles` with these settings runs (fitting drawing
+    parameters, as the default names do; without them nothing is refined): all the epochs in
+    paper mode; in fast mode a field of trials halved after every rung, then the last trial on
+    to ``n_epochs`` (fewer when it stalls). The starts: one, and more (up to
+    :data:`REFINE_STARTS`) while the extra ones cost at most a tenth of the epochs'
+    evaluations."""
     mode = _checks.choice(mode, "mode", ("fast", "paper"))
     n_agents = _checks.integer(n_agents, "n_agents", low=3)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
     refine_steps = REFINE_STEPS[mode] if refine_steps is None else refine_steps
     refine_steps = _checks.integer(refine_steps, "refine_steps", low=0)
+    polishes = 0
     if mode == "paper":
-        return n_trials * n_epochs, 0
-    rung, epochs, done, rungs = _rung(n_epochs), 0, 0, 0
-    while n_trials > 1:
-        epochs, done, rungs = epochs + n_trials * rung, done + rung, rungs + n_trials
-        n_trials = -(-n_trials // 2)
-    rest = max(0, n_epochs - done)
-    polishing = _polishes(mode, refine_steps, n_agents, n_epochs)
-    return epochs + rest, (rungs + -(-rest // rung)) * polishing
+        epochs = n_trials * n_epochs
+    else:
+        rung, epochs, done, rungs = _rung(n_epochs), 0, 0, 0
+        while n_trials > 1:
+            epochs, done, rungs = epochs + n_trials * rung, done + rung, rungs + n_trials
+            n_trials = -(-n_trials // 2)
+        rest = max(0, n_epochs - done)
+        epochs += rest
+        polishes = (rungs + -(-rest // rung)) * _polishes(mode, refine_steps, n_agents, n_epochs)
+    extra = epochs * n_agents // (10 * 7 * refine_steps) if refine_steps else 0
+    return epochs, polishes, min(REFINE_STARTS, 1 + extra)
 
 
 def _starts(runs: list[_Trial], finished: list[int], low, high, n: int):
