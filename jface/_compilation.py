@@ -78,9 +78,7 @@ def kept_arrays(
     corrupt) is built again and replaced; one that cannot be written is skipped (the answer is
     the same, the next run builds it too).
     """
-    arrays = None if shipped is None else _read_kept(shipped)
-    prefix = f"{what}.{_digest(settings)}."
-    if arrays is not None and (found := _entries(arrays, prefix)):
+    if shipped is not None and (found := read_shipped(shipped, what, settings)):
         return found
     path = kept_path(what, settings)
     if path is None:
@@ -101,19 +99,22 @@ def shipped_arrays(what: str, settings: tuple, arrays: dict[str, np.ndarray]) ->
     return {f"{what}.{_digest(settings)}.{name}": a for name, a in arrays.items()}
 
 
+def read_shipped(shipped: Path, what: str, settings: tuple) -> dict[str, np.ndarray]:
+    """The arrays of ``what`` of ``settings`` in the ``shipped`` file ({} when it holds none, or
+    is missing or damaged)."""
+    return _read_kept(shipped, f"{what}.{_digest(settings)}.") or {}
+
+
 def _digest(settings: tuple) -> str:
     return hashlib.sha256(repr(settings).encode()).hexdigest()[:16]
 
 
-def _entries(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
-    return {k[len(prefix) :]: a for k, a in arrays.items() if k.startswith(prefix)}
-
-
-def _read_kept(path: Path) -> dict[str, np.ndarray] | None:
-    """The arrays of ``path``; None when there is none yet or it is damaged (built again)."""
+def _read_kept(path: Path, prefix: str = "") -> dict[str, np.ndarray] | None:
+    """The arrays of ``path`` whose names start with ``prefix`` (named without it); None when
+    there is none yet or it is damaged (built again)."""
     try:
         with open(path, "rb") as file, np.load(file, allow_pickle=False) as stored:
-            return {k: stored[k] for k in stored.files}
+            return {k[len(prefix) :]: stored[k] for k in stored.files if k.startswith(prefix)}
     except Exception:  # a missing, truncated or corrupt copy of derived data
         return None
 

@@ -14,9 +14,10 @@ periodic map needs whole tiles) and cropped. The pores and graphs do not depend 
 size: they are kept once per α_d grid, the draw sizes per patch size, for the next fit in the
 process and, with the compiled programs, on disk.
 
-Beyond the paper, the continuous drawing parameters of the best answers (:data:`REFINE_STARTS`
-starts) are then refined by gradient (optimistix BFGS) through the differentiable drawing with the
-simulation result held fixed, and the best refined answer is the fit's.
+Beyond the paper, the continuous drawing parameters of the best answers (up to
+:data:`REFINE_STARTS` starts, see ``refine_starts``) are then refined by gradient (optimistix
+BFGS) through the differentiable drawing with the simulation result held fixed, and the best
+refined answer is the fit's.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from jface._compilation import (
     QUICK_COMPILE,
     compile_ahead,
     kept_arrays,
+    read_shipped,
     shipped_arrays,
     write_arrays,
 )
@@ -122,8 +124,9 @@ class WrinkleFit(eqx.Module):
         interrupted: the fit was stopped (Ctrl-C) and reports the best found so far: the
             swarm's, unrefined, or when stopped while refining, the best start refined by then.
         epochs_run: epochs each trial ran (static).
-        refined_losses: loss of each start of the final refinement (up to
-            :data:`REFINE_STARTS`, the swarm's best first; one without drawing fields to refine);
+        refined_losses: loss of each start of the final refinement (``refine_starts`` of
+            :func:`fit_wrinkles` at most, the swarm's best first; one without drawing fields to
+            refine);
             ``loss`` is the least (empty when interrupted before any).
         answer_trial: the trial whose answer ``levels`` is (static; in paper mode not always
             ``swarm.best_trial``: another trial's answer can refine better).
@@ -253,10 +256,10 @@ def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     def build() -> _Layout:
         design = _kept_design(key, d_range, d_levels)
 
-        def draw_sizes():
-            return {"entries": np.asarray(_draw_entries(key, design, size, n_steps))}
+        def build_sizes():
+            return _draw_sizes(key, design, size, n_steps)
 
-        entries = kept_arrays("layouts", name, draw_sizes, SHIPPED_LAYOUTS)["entries"]
+        entries = kept_arrays("layouts", name, build_sizes, SHIPPED_LAYOUTS)["entries"]
         return _sized(design, size, n_steps, tuple(map(int, entries)))
 
     return _remembered(_LAYOUTS, name, build)
@@ -289,10 +292,21 @@ def ship_layouts(path: Path = SHIPPED_LAYOUTS) -> None:
     design = _design(key, D_RANGE, d_levels)
     arrays = shipped_arrays("designs", _design_name(key, D_RANGE, d_levels), _design_arrays(design))
     for n in SHIPPED_SIZES:
-        entries = np.asarray(_draw_entries(key, design, (n, n), n_steps))
         name = _layout_name(key, (n, n), D_RANGE, n_steps, d_levels)
-        arrays |= shipped_arrays("layouts", name, {"entries": entries})
+        arrays |= shipped_arrays("layouts", name, _draw_sizes(key, design, (n, n), n_steps))
     write_arrays(path, arrays)
+
+
+def layout_shipped(size, d_range, n_steps, d_levels) -> bool:
+    """Whether jface ships the layout of a fit of these settings (its first fit only compiles;
+    otherwise it builds the draw sizes, and the design unless another size's fit kept it)."""
+    name = _layout_name(layout_key(), size, d_range, n_steps, d_levels)
+    return bool(read_shipped(SHIPPED_LAYOUTS, "layouts", name))
+
+
+def _draw_sizes(key, design: _Design, size, n_steps) -> dict[str, np.ndarray]:
+    """:func:`_draw_entries` as the arrays a layout is kept as."""
+    return {"entries": np.asarray(_draw_entries(key, design, size, n_steps))}
 
 
 def _remembered(memo: dict, name: tuple, build):
@@ -305,9 +319,11 @@ def _remembered(memo: dict, name: tuple, build):
 
 
 def _design_name(key, d_range, d_levels) -> tuple:
-    """What a design is built from, as plain values."""
+    """What a design is built from, as plain values (with the setting that changes the key's
+    random stream)."""
     bits = np.asarray(jax.random.key_data(key)).tobytes()
-    return (str(jax.random.key_impl(key)), bits, tuple(map(float, d_range)), int(d_levels))
+    stream = (str(jax.random.key_impl(key)), bool(jax.config.jax_threefry_partitionable))
+    return (*stream, bits, tuple(map(float, d_range)), int(d_levels))
 
 
 def _layout_name(key, size, d_range, n_steps, d_levels) -> tuple:

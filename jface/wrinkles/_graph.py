@@ -284,7 +284,8 @@ GRAPH_TABLES = {
 
 def graph_tables(g: PoreGraph) -> dict[str, np.ndarray]:
     """The arrays of :data:`GRAPH_TABLES` of ``g`` (a graph or a batch), about half its bytes:
-    :func:`graph_from_tables` rebuilds the same graph, bit for bit."""
+    :func:`graph_from_tables` rebuilds the same graph, bit for bit (as built: float32
+    positions)."""
     return {f: np.asarray(getattr(g, f)) for f in GRAPH_TABLES}
 
 
