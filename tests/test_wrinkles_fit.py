@@ -91,13 +91,29 @@ def test_refinement_never_worsens_and_history_is_monotone(fit, target, layout):
     x = jnp.concatenate([fit.swarm.params, jnp.array([0.6], jnp.float32)])
     start = _SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, names)(x[None])[0]
     levels = _levels_from(x, names, TRUE)
-    fields = _drawing_fields(names)
+    fields = _drawing_fields(names, *_fit._bounds(names, D_RANGE, {})[:2])
     _, loss, _ = _refine(fit.sim_key, levels, start, layout, texture_stats(target), fields, 4)
     assert float(loss) <= float(start)
     assert float(fit.loss) <= float(fit.swarm_loss)
     assert np.all(np.diff(np.asarray(fit.swarm.history), axis=1) <= 0)
     assert fit.fitted.shape == (64, 64) and np.all(np.isfinite(fit.fitted))
     assert float(fit.levels[1].d) == pytest.approx(float(fit.levels[0].d) / 2)
+
+
+def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layout, monkeypatch):
+    """A loss that wants α_wrinkle-width small (minus the map's spread: this target's texture
+    loss hardly depends on it): refined from 0.35, it reaches near Table 1's low end in a wide
+    range and stops at the low end of a user's (0.3, 0.4). Ranges no other test uses, so that
+    no other test's refinement is this stand-in's compiled program."""
+    monkeypatch.setattr(_fit, "_loss", lambda image, stats: 10.0 - 100.0 * jnp.std(image))
+    names = (*NAMES, "1.wrinkle_width")
+    x = jnp.concatenate([fit.swarm.params, jnp.array([0.35], jnp.float32)])
+    levels, refined = _levels_from(x, names, TRUE), []
+    for bounds in ((0.1, 0.59), (0.3, 0.4)):
+        fields = _drawing_fields(names, *_fit._bounds(names, D_RANGE, {names[-1]: bounds})[:2])
+        drawn, _, _ = _refine(fit.sim_key, levels, 100.0, layout, texture_stats(target), fields, 4)
+        refined.append(float(drawn[0].wrinkle_width))
+    assert refined[0] < 0.2 and refined[1] == pytest.approx(0.3, abs=1e-3), refined
 
 
 def test_refinement_compiles_once_while_the_swarm_runs(target, caplog):

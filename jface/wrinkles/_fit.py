@@ -732,7 +732,8 @@ def fit_wrinkles(
         base: values of everything not fitted, ``(level 1, level 2)``; default
             ``WrinkleParams(d=0.035)`` and level 2 at half the distance with ``snoise`` at its
             minimum (one noise level). Level 2's α_d is always half of level 1's.
-        bounds: narrower search ranges (``{name: (low, high)}`` for fitted names), within the
+        bounds: narrower search ranges (``{name: (low, high)}`` for fitted names; the swarm's and
+            the refinement's), within the
             parameter's Table 1 range (within ``d_range`` for ``"d"``).
         d_range: search range of α_d (fixes the pore capacities).
         n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
@@ -807,6 +808,7 @@ def fit_wrinkles(
     if "d" not in names and not lo_d <= float(base[0].d) <= hi_d:
         raise ValueError(f"base α_d {float(base[0].d)} lies outside d_range {d_range}")
     low, high, cyclic = _bounds(names, d_range, bounds)
+    fields = _drawing_fields(names, low, high)
 
     n_steps = _checks.integer(n_steps, "n_steps", low=1)
     mode = _checks.choice(mode, "mode", ("fast", "paper"))
@@ -837,7 +839,7 @@ def fit_wrinkles(
     search = (low, high, cyclic, settings)
     # one refinement program for every answer (the whole grid's slots), compiled while the
     # swarm runs
-    refining, fields = whole.narrowed(0), _drawing_fields(names)
+    refining = whole.narrowed(0)
     refine_steps = refine_steps if fields else 0
     if refine_steps:
         like = _levels_from(jnp.asarray((low + high) / 2), names, base)  # the answer's types
@@ -854,7 +856,7 @@ def fit_wrinkles(
                 sim_key, levels, start, refining, target_stats, fields, refine_steps
             )
             params = np.array(best)
-            for lv, f in fields:
+            for lv, f, *_ in fields:
                 params[index[f"{lv + 1}.{f}"]] = float(getattr(drawn[lv], f))
             return params, float(loss)
 
@@ -1070,10 +1072,13 @@ def _result(runs: list[_Trial], low, high) -> PSOResult:
     )
 
 
-def _drawing_fields(names) -> tuple[tuple[int, str], ...]:
-    """(level index, field) of the fitted drawing parameters: what the refinement optimises."""
+def _drawing_fields(names, low, high) -> tuple[tuple[int, str, float, float], ...]:
+    """(level index, field, low, high) of the fitted drawing parameters, in their search ranges
+    (``low``, ``high``: of every name): what the refinement optimises, within those ranges."""
     return tuple(
-        (int(n[0]) - 1, n[2:]) for n in names if "." in n and n.split(".")[1] in DRAWING_NAMES
+        (int(n[0]) - 1, n[2:], float(lo), float(hi))
+        for n, lo, hi in zip(names, low, high, strict=True)
+        if "." in n and n.split(".")[1] in DRAWING_NAMES
     )
 
 
@@ -1118,16 +1123,15 @@ def _refine_passes(fullest: int) -> int:
 @functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
 def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, steps):
     """One program for the whole refinement: the simulation of ``levels`` (α_d snapped), BFGS
-    over the logits of ``fields`` (static) with the drawing's ``passes`` (static), and the map and
-    loss (inf where undrawable) of the start and of the answer, drawn by one compiled drawing
-    (a forward draw costs a third of the solve's compile time), with the start's fullest tile per
-    level. ``steps == 0``: the start alone."""
+    over the logits of ``fields`` (static, each in its search range) with the drawing's
+    ``passes`` (static), and the map and loss (inf where undrawable) of the start and of the
+    answer, drawn by one compiled drawing (a forward draw costs a third of the solve's compile
+    time), with the start's fullest tile per level. ``steps == 0``: the start alone."""
     sims, levels = _simulate(sim_key, levels, layout)
 
     def unpack(z):
         changes: tuple[dict, dict] = ({}, {})
-        for i, (lv, f) in enumerate(fields):
-            lo, hi = PARAMETER_RANGES[f]
+        for i, (lv, f, lo, hi) in enumerate(fields):
             changes[lv][f] = lo + (hi - lo) * jax.nn.sigmoid(z[i])
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
 
@@ -1136,14 +1140,13 @@ def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, ste
         # inf where undrawable: the line search backs off
         return jnp.where(bad, jnp.inf, _loss(image, target_stats))
 
-    def logit(lv, f):
-        lo, hi = PARAMETER_RANGES[f]
+    def logit(lv, f, lo, hi):
         u = jnp.clip((getattr(levels[lv], f) - lo) / (hi - lo), 1e-3, 1 - 1e-3)
         return jnp.log(u) - jnp.log1p(-u)
 
     drawn = [levels]
     if steps:
-        z0 = jnp.stack([logit(lv, f) for lv, f in fields]).astype(jnp.float32)
+        z0 = jnp.stack([logit(*field) for field in fields]).astype(jnp.float32)
         solver = optx.BFGS(rtol=1e-4, atol=1e-6)
         sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
         drawn.append(unpack(sol.value))
