@@ -337,7 +337,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
             n_trials=args.trials,
             n_steps=args.steps,
             refine_steps=args.refine_steps,
-            d_levels=None if args.d_levels is None else max(2, args.d_levels),
+            d_levels=d_levels,
             mode=mode,
             progress=report,
         )

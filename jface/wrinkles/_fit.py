@@ -126,8 +126,7 @@ class WrinkleFit(eqx.Module):
         epochs_run: epochs each trial ran (static).
         refined_losses: loss of each start of the final refinement (``refine_starts`` of
             :func:`fit_wrinkles` at most, the swarm's best first; one without drawing fields to
-            refine);
-            ``loss`` is the least (empty when interrupted before any).
+            refine); ``loss`` is the least (empty when interrupted before any).
         answer_trial: the trial whose answer ``levels`` is (static; in paper mode not always
             ``swarm.best_trial``: another trial's answer can refine better).
     """
@@ -256,9 +255,7 @@ def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     def build() -> _Layout:
         design = _kept_design(key, d_range, d_levels)
 
-        def build_sizes():
-            return _draw_sizes(key, design, size, n_steps)
-
+        build_sizes = functools.partial(_draw_sizes, key, design, size, n_steps)
         entries = kept_arrays("layouts", name, build_sizes, SHIPPED_LAYOUTS)["entries"]
         return _sized(design, size, n_steps, tuple(map(int, entries)))
 
@@ -343,9 +340,9 @@ def _design_arrays(design: _Design) -> dict[str, np.ndarray]:
     for level, graph in enumerate(design.graphs):
         arrays[f"{level}.periodic"] = np.asarray(graph.periodic)
         for field, a in graph_tables(graph).items():
-            fits = a.size > 0 and _INT16.min <= a.min() <= a.max() <= _INT16.max
-            narrow = a.dtype == np.int32 and fits
-            arrays[f"{level}.{field}"] = a.astype(np.int16) if narrow else a
+            if a.dtype == np.int32 and a.size and _INT16.min <= a.min() and a.max() <= _INT16.max:
+                a = a.astype(np.int16)
+            arrays[f"{level}.{field}"] = a
     return arrays
 
 
@@ -733,8 +730,8 @@ def fit_wrinkles(
             ``WrinkleParams(d=0.035)`` and level 2 at half the distance with ``snoise`` at its
             minimum (one noise level). Level 2's α_d is always half of level 1's.
         bounds: narrower search ranges (``{name: (low, high)}`` for fitted names; the swarm's and
-            the refinement's), within the
-            parameter's Table 1 range (within ``d_range`` for ``"d"``).
+            the refinement's), within the parameter's Table 1 range (within ``d_range`` for
+            ``"d"``).
         d_range: search range of α_d (fixes the pore capacities).
         n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
         n_steps: simulation steps per level (paper: 50).
