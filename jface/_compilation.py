@@ -139,13 +139,14 @@ def kept_path(what: str, settings: tuple) -> Path | None:
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
         return None
-    name = repr((settings, jax.__version__, bool(jax.config.jax_enable_x64), _source_digest()))
+    name = repr((settings, jax.__version__, bool(jax.config.jax_enable_x64), source_digest()))
     return Path(folder) / f"jface-{what}" / f"{hashlib.sha256(name.encode()).hexdigest()[:32]}.npz"
 
 
 @functools.cache
-def _source_digest() -> str:
-    """Hash of jface's Python source (kept arrays of another version are not reused)."""
+def source_digest() -> str:
+    """Hash of jface's Python source: kept arrays and resumable results of other code (an
+    upgrade, or an edit the version number does not show) are not reused."""
     digest = hashlib.sha256()
     for path in sorted(Path(__file__).parent.rglob("*.py")):
         digest.update(path.read_bytes())

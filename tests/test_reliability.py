@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from jface import detail, faces, io, mesh
+from jface import _compilation, detail, faces, io, mesh
 from jface.cli import main
 from jface.cli._mesh import write_face
 from jface.mesh import LANDMARK_NAMES
@@ -468,6 +468,17 @@ def test_analyze_reruns_recompute_what_changed(tmp_path, capsys):
     assert detail.load_stats(out / "n.stats.npz").stats.grid == 8
     (out / "n.stats.png").unlink()  # a lost picture is made again
     assert "analyzed 1 map(s), kept 1" in run("--grid", "8", "--scales", "2")
+
+
+def test_reruns_with_other_jface_code_recompute(tmp_path, capsys, monkeypatch):
+    """A result made by other jface code is not reused, also when the version number is the
+    same (an upgrade from source, an edit)."""
+    m = io.write_exr(tmp_path / "m.exr", noise())
+    argv = ["analyze", str(m), "--out", str(tmp_path / "stats"), "--grid", "4", "--scales", "2"]
+    assert main(argv) == 0 and "analyzed 1 map(s), kept 0" in capsys.readouterr().out
+    assert main(argv) == 0 and "analyzed 0 map(s), kept 1" in capsys.readouterr().out
+    monkeypatch.setattr(_compilation, "source_digest", lambda: "other code")
+    assert main(argv) == 0 and "analyzed 1 map(s), kept 0" in capsys.readouterr().out
 
 
 def test_db_build_resume_reuses_only_unchanged_chunks(tmp_path, capsys, monkeypatch):

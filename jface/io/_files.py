@@ -153,12 +153,15 @@ def input_file(path: str | os.PathLike, what: str = "file") -> Path:
 
 def content_key(paths: Iterable[str | os.PathLike], settings: dict) -> str:
     """The key of a result computed from files with settings, for caches and resumable runs:
-    SHA-256 (hex) of the files' bytes, the settings (as JSON) and the jface version, so an edit
-    of any file, another setting or another jface gives another key. The files count as inputs
-    of the current :func:`session`."""
+    SHA-256 (hex) of the files' bytes, the settings (as JSON), the jface version and its source,
+    so an edit of any file, another setting or other jface code (an upgrade, also one that keeps
+    the version number) gives another key. The files count as inputs of the current
+    :func:`session`."""
     from jface import __version__
+    from jface._compilation import source_digest
 
-    digest = hashlib.sha256(json.dumps([__version__, settings], sort_keys=True).encode())
+    versions = [__version__, source_digest()]
+    digest = hashlib.sha256(json.dumps([*versions, settings], sort_keys=True).encode())
     for path in paths:
         with open(input_file(path), "rb") as handle:
             digest.update(hashlib.file_digest(handle, "sha256").digest())
