@@ -355,35 +355,46 @@ def test_a_stalled_trial_goes_on_after_a_gaining_polish_and_stops_after_one_that
 def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
     """With rungs large enough (here: any), fast mode refines every trial's best after each rung
     and keeps what the refinement found: a polish of the winning trial that gained is its best
-    from that epoch on, and the fit's swarm loss is at most every polish's loss."""
-    polished = []
+    from that epoch on, and the fit's swarm loss is at most every polish's loss. No start is
+    solved twice (a polish that gained nothing, on a best that did not change since, nor as the
+    final refinement's first start)."""
+    solved, polishes = [], []
+
+    def bits(key):
+        return np.asarray(jax.random.key_data(key)).tobytes()
 
     def refine(sim_key, levels, start, *args):
-        out = _refine(sim_key, levels, start, *args)
-        polished.append((sim_key, float(start), float(out[1])))
-        return out
+        solved.append((bits(sim_key), float(start)))
+        return _refine(sim_key, levels, start, *args)
 
+    def polish(run, *args):
+        before = run.history[-1]
+        real_polish(run, *args)
+        polishes.append((bits(run.loss.key), len(run.history) - 1, before, run.history[-1]))
+
+    real_polish = _fit._Trial.polish
     monkeypatch.setattr(_fit, "POLISH_FROM", 1)
     monkeypatch.setattr(_fit, "_refine", refine)
+    monkeypatch.setattr(_fit._Trial, "polish", polish)
     names = (*NAMES, "1.wrinkle_width")
     small = dict(SMALL, n_agents=3, n_epochs=8)  # rungs of one epoch
     fit = fit_wrinkles(jax.random.key(1), target, names=names, base=TRUE, n_trials=2,
                        refine_steps=2, refine_starts=3, **small)  # fmt: skip
     assert sorted(fit.epochs_run) == [1, 8]
-    # two after the first rung, seven after the last trial's epochs 2-8, then the final
-    # refinement from its three agents' personal bests
-    assert len(polished) == 2 + 7 + 3
+    # two after the first rung, seven after the last trial's epochs 2-8
+    assert len(polishes) == 2 + 7
     assert fit_budget(3, 8, 2, refine_steps=2)[:2] == (1 + 8, 2 + 7)  # what the fit ran
-    winner = [(start, loss) for key, start, loss in polished[:-3] if jnp.array_equal(
-        jax.random.key_data(key), jax.random.key_data(fit.sim_key))]  # fmt: skip
-    assert len(winner) == 8  # after each of its epochs 1-8
+    winner = [p for p in polishes if p[0] == bits(fit.sim_key)]
+    assert [epoch for _, epoch, *_ in winner] == list(range(1, 9))
+    # the polishes and the final refinement's three starts, each solved once: some repeated
+    assert len(solved) == len(set(solved)) < 2 + 7 + 3
     # a polish that gained became the trial's best at that epoch (and stays in the history)
     history = np.asarray(fit.swarm.history)[int(fit.swarm.best_trial)]
-    gained = [(e, loss) for e, (start, loss) in enumerate(winner, 1) if loss < start]
+    gained = [(epoch, after) for _, epoch, before, after in winner if after < before]
     assert gained
     for epoch, loss in gained:
         assert history[epoch] == pytest.approx(loss, rel=1e-6)
-    assert float(fit.swarm_loss) <= min(loss for _, loss in winner) * (1 + 1e-6)
+    assert float(fit.swarm_loss) <= min(after for *_, after in winner) * (1 + 1e-6)
 
 
 def test_interrupt_keeps_the_best_so_far(target):

@@ -838,20 +838,36 @@ def fit_wrinkles(
     # swarm runs
     refining = whole.narrowed(0)
     refine_steps = refine_steps if fields else 0
+    ahead = None
     if refine_steps:
         like = _levels_from(jnp.asarray((low + high) / 2), names, base)  # the answer's types
         refine_args = (refining, target_stats, fields, (_REFINE_PASSES,) * 2, refine_steps)
         ahead = compile_ahead(_refined, sim_keys[0], like, *refine_args)
+    # the fit's refinements by their starts, each solved once: a polish that gained nothing
+    # comes back after the next rung when the swarm found nothing better, and as a start of the
+    # final refinement (a map each: a few MB in all)
+    solved = {}
+
+    def refine(sim_key, params, start):
+        """:func:`_refine` of ``params`` with a trial's simulation key from its swarm loss
+        ``start``: (levels, loss, map)."""
+        bits = np.asarray(jax.random.key_data(sim_key)).tobytes()
+        name = (bits, np.asarray(params).tobytes(), float(start))
+        if name not in solved:
+            if ahead is not None:
+                ahead.join()
+            levels = _levels_from(jnp.asarray(params), names, base)
+            solved[name] = _refine(
+                sim_key, levels, start, refining, target_stats, fields, refine_steps
+            )
+        return solved[name]
+
     polish = None
     if _polishes(mode, refine_steps, settings.n_agents, n_epochs):
         index = {name: i for i, name in enumerate(names)}
 
         def polish(sim_key, best, start):  # the refinement of a trial's best, as parameters
-            ahead.join()
-            levels = _levels_from(jnp.asarray(best), names, base)
-            drawn, loss, _ = _refine(
-                sim_key, levels, start, refining, target_stats, fields, refine_steps
-            )
+            drawn, loss, _ = refine(sim_key, best, start)
             params = np.array(best)
             for lv, f, *_ in fields:
                 params[index[f"{lv + 1}.{f}"]] = float(getattr(drawn[lv], f))
@@ -873,14 +889,8 @@ def fit_wrinkles(
     if not interrupted:
         try:
             starts = _starts(runs, finished, low, high, refine_starts if refine_steps else 1)
-            if refine_steps:
-                ahead.join()
             for t, params, start in starts:
-                levels = _levels_from(jnp.asarray(params), names, base)
-                answers.append(
-                    (t, *_refine(sim_keys[t], levels, start, refining, target_stats, fields,
-                                 refine_steps))
-                )  # fmt: skip
+                answers.append((t, *refine(sim_keys[t], params, start)))
         except KeyboardInterrupt:  # Ctrl-C while refining: the starts refined so far
             interrupted = True
     if not answers:  # the swarm's answer as it is, unrefined (a compile may still be running)
