@@ -183,7 +183,7 @@ def main() -> None:
                 )  # fmt: skip
                 jax.block_until_ready(fit.loss)
                 elapsed = time.perf_counter() - start
-                done[mode] = (elapsed, float(fit.loss))
+                done[mode] = (elapsed, float(fit.loss), fit.heldout_loss)
                 if args.save:
                     np.savez(
                         args.save / f"{name}-{mode}-{seed}.npz", fitted=np.asarray(fit.fitted),
@@ -196,10 +196,11 @@ def main() -> None:
                              "theta": round(float(fit.levels[0].theta), 3),
                              "truth": {"deposit": 0.5, "theta": 0.8}}  # fmt: skip
                 if mode == "paper" and "fast" in done:
-                    fast_s, fast_loss = done["fast"]
+                    fast_s, fast_loss, fast_heldout = done["fast"]
                     extra |= {
                         "time_fast_over_paper": round(fast_s / elapsed, 3),
                         "loss_fast_over_paper": round(fast_loss / float(fit.loss), 3),
+                        "heldout_fast_over_paper": round(fast_heldout / fit.heldout_loss, 3),
                     }
                 report(
                     f"wrinkle fit, {mode} mode, target {name} {target.shape[0]}², seed {seed}, "
@@ -208,6 +209,7 @@ def main() -> None:
                     goal_s=600,
                     swarm_loss=float(fit.swarm_loss),
                     loss=float(fit.loss),
+                    heldout_loss=fit.heldout_loss,
                     epochs_run=list(fit.epochs_run),
                     evaluations=args.agents * sum(e + 1 for e in fit.epochs_run),
                     polishes=polish_count(fit, mode, args),

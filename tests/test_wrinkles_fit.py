@@ -40,6 +40,8 @@ TRUE = (
     WrinkleParams(d=0.0225, theta=1.0, s=0.2, deposit=0.6, snoise=0.001),
 )
 SMALL = {"d_range": D_RANGE, "n_agents": 10, "n_epochs": 10, "n_steps": 30, "d_levels": 4}
+# held-out simulation keys for refinements outside a fit (as many as a fit's: one program)
+HELDOUT = jax.random.split(jax.random.key(5), _fit.HELDOUT_KEYS)
 
 
 def synthesize(key, levels, layout):
@@ -92,12 +94,26 @@ def test_refinement_never_worsens_and_history_is_monotone(fit, target, layout):
     start = _SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, names)(x[None])[0]
     levels = _levels_from(x, names, TRUE)
     fields = _drawing_fields(names, *_fit._bounds(names, D_RANGE, {})[:2])
-    _, loss, _ = _refine(fit.sim_key, levels, start, layout, texture_stats(target), fields, 4)
-    assert float(loss) <= float(start)
+    args = (layout, texture_stats(target), fields, 4, HELDOUT)
+    assert float(_refine(fit.sim_key, levels, start, *args).loss) <= float(start)
     assert float(fit.loss) <= float(fit.swarm_loss)
     assert np.all(np.diff(np.asarray(fit.swarm.history), axis=1) <= 0)
     assert fit.fitted.shape == (64, 64) and np.all(np.isfinite(fit.fitted))
     assert float(fit.levels[1].d) == pytest.approx(float(fit.levels[0].d) / 2)
+
+
+def test_heldout_losses_score_the_answer_with_other_simulation_keys(fit, target, layout):
+    """The answer's held-out losses are its swarm losses with the held-out keys (folded into
+    the fit's simulation key), which differ from its own key's: the search's least loss
+    flatters the parameters on other keys."""
+    k_sim = jax.random.split(jax.random.key(0))[0]
+    keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), _fit.HELDOUT_KEYS)
+    stats = texture_stats(target)
+    expected = [_SwarmLoss(k, stats, TRUE, layout, NAMES)(fit.swarm.params[None])[0] for k in keys]
+    np.testing.assert_allclose(fit.heldout_losses, expected, rtol=1e-5)
+    assert np.all(np.isfinite(fit.heldout_losses)) and len(set(np.asarray(expected))) == len(keys)
+    assert fit.heldout_loss == pytest.approx(float(np.mean(expected)), rel=1e-5)
+    assert fit.heldout_loss > float(fit.loss)
 
 
 def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layout, monkeypatch):
@@ -111,8 +127,8 @@ def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layo
     levels, refined = _levels_from(x, names, TRUE), []
     for bounds in ((0.1, 0.59), (0.3, 0.4)):
         fields = _drawing_fields(names, *_fit._bounds(names, D_RANGE, {names[-1]: bounds})[:2])
-        drawn, _, _ = _refine(fit.sim_key, levels, 100.0, layout, texture_stats(target), fields, 4)
-        refined.append(float(drawn[0].wrinkle_width))
+        args = (layout, texture_stats(target), fields, 4, HELDOUT)
+        refined.append(float(_refine(fit.sim_key, levels, 100.0, *args).levels[0].wrinkle_width))
     assert refined[0] < 0.2 and refined[1] == pytest.approx(0.3, abs=1e-3), refined
 
 
@@ -149,9 +165,9 @@ def test_paper_mode_keeps_another_trials_answer_with_its_own_key(target, monkeyp
     keys = []
 
     def refine(sim_key, levels, start, *args):
-        drawn, loss, image = _refine(sim_key, levels, start, *args)
+        refined = _refine(sim_key, levels, start, *args)
         keys.append(jax.random.key_data(sim_key))
-        return drawn, loss - (1.0 if len(keys) == 2 else 0.0), image
+        return refined._replace(loss=refined.loss - (1.0 if len(keys) == 2 else 0.0))
 
     monkeypatch.setattr(_fit, "_refine", refine)
     monkeypatch.setattr(_fit, "fit_budget", lambda *a, **k: (2, 0, 3))
@@ -430,7 +446,7 @@ def test_interrupt_while_refining_keeps_the_starts_refined_so_far(target, monkey
     fit = fit_wrinkles(jax.random.key(1), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
                        n_trials=1, refine_steps=2, refine_starts=2, **small)  # fmt: skip
     assert fit.interrupted and len(fit.refined_losses) == 1
-    levels, loss, image = refined[0]
+    levels, loss, image, _ = refined[0]
     assert float(fit.loss) == float(loss) <= float(fit.swarm_loss)
     np.testing.assert_array_equal(fit.fitted, image)
     assert float(fit.levels[0].wrinkle_width) == float(levels[0].wrinkle_width)

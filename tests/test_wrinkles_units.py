@@ -182,7 +182,8 @@ def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
         swarm = SimpleNamespace(trial_losses=[0.5], n_nonfinite=np.zeros(1), history=history)
         return SimpleNamespace(levels=(LEVEL, LEVEL.replace(d=0.02)), loss=0.4, swarm_loss=0.5,
                                swarm=swarm, names=("d",), fitted=patch, epochs_run=(3,),
-                               interrupted=False, refined_losses=[0.4], answer_trial=0)  # fmt: skip
+                               interrupted=False, refined_losses=[0.4], answer_trial=0,
+                               heldout_loss=0.6, heldout_losses=[0.5, 0.7])  # fmt: skip
 
     monkeypatch.setattr(_fit, "fit_wrinkles", fake_fit)
     square, wide = tmp_path / "square.npy", tmp_path / "wide.npy"

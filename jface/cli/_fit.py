@@ -101,8 +101,9 @@ def register(subparsers) -> None:
     add_process_options(parser, "fitting a share of the patches")
     parser.set_defaults(
         run=_fit,
-        prose="loss {swarm_loss:.4g} (swarm) → {loss:.4g} (refined); {nonfinite} non-finite "
-        "evaluations; wrote {out}, {convergence}, {comparison}",
+        prose="loss {swarm_loss:.4g} (swarm) → {loss:.4g} (refined), {heldout_loss} with other "
+        "simulation keys; {nonfinite} non-finite evaluations; wrote {out}, {convergence}, "
+        "{comparison}",
     )
 
 
@@ -284,6 +285,15 @@ def _done(out: Path, patch: str, key: str) -> dict | None:
     return document
 
 
+def _finite_or_none(value) -> float | None:
+    """A loss for JSON, which has no infinity or NaN."""
+    return float(value) if np.isfinite(value) else None
+
+
+def _rounded(loss: float | None) -> float | None:
+    return None if loss is None else float(f"{loss:.4g}")
+
+
 def _summary(out: Path, document: dict, kept: bool) -> dict:
     stem = out.with_suffix("")
     fit = document["fit"]
@@ -294,6 +304,7 @@ def _summary(out: Path, document: dict, kept: bool) -> dict:
         "comparison": f"{stem}_target_fit.png",
         "swarm_loss": fit["swarm_loss"],
         "loss": fit["loss"],
+        "heldout_loss": _rounded(fit.get("heldout_loss")),
         "nonfinite": int(np.sum(fit["nonfinite_losses"])),
         "kept": kept,
     }
@@ -352,6 +363,9 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
             "loss": float(fit.loss),
             "swarm_loss": float(fit.swarm_loss),
             "refined_losses": np.asarray(fit.refined_losses).tolist(),
+            # the answer with other simulation keys (null: undrawable at the fit's draw sizes)
+            "heldout_loss": _finite_or_none(fit.heldout_loss),
+            "heldout_losses": [_finite_or_none(v) for v in np.asarray(fit.heldout_losses)],
             "answer_trial": fit.answer_trial,
             "trial_losses": np.asarray(fit.swarm.trial_losses).tolist(),
             "nonfinite_losses": np.asarray(fit.swarm.n_nonfinite).tolist(),

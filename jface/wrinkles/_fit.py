@@ -97,6 +97,9 @@ REFINE_STEPS = {"fast": 10, "paper": 30}
 #: takes the extra starts while they cost at most a tenth of its swarm's evaluations (a 256²
 #: exploratory fit of 40 evaluations spent 23 s on 4 starts, half its time warm).
 REFINE_STARTS = 4
+#: Simulation keys that score a refined answer besides its own (:attr:`WrinkleFit.heldout_losses`);
+#: each costs about one swarm evaluation per refinement.
+HELDOUT_KEYS = 4
 #: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
 STALL_TOLERANCE, PATIENCE = 1e-3, 10
 #: Fast mode polishes every trial's best with the refinement after each rung of successive
@@ -129,6 +132,10 @@ class WrinkleFit(eqx.Module):
             refine); ``loss`` is the least (empty when interrupted before any).
         answer_trial: the trial whose answer ``levels`` is (static; in paper mode not always
             ``swarm.best_trial``: another trial's answer can refine better).
+        heldout_losses: losses of ``levels`` simulated and drawn with :data:`HELDOUT_KEYS`
+            other simulation keys (the same pores; inf where the fit's static draw sizes cannot
+            draw one). ``loss`` is the least of many answers on one key and so flatters the
+            parameters; :attr:`heldout_loss`, the mean of these, does not.
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
@@ -142,6 +149,16 @@ class WrinkleFit(eqx.Module):
     epochs_run: tuple[int, ...] = eqx.field(static=True, default=())
     refined_losses: Float[Array, " S"] = eqx.field(default_factory=lambda: jnp.zeros(0))
     answer_trial: int = eqx.field(static=True, default=0)
+    heldout_losses: Float[Array, " K"] = eqx.field(default_factory=lambda: jnp.zeros(0))
+
+    @property
+    def heldout_loss(self) -> float:
+        """Mean of the finite :attr:`heldout_losses` (NaN when none is): about what a map drawn
+        with these parameters and another simulation key scores, unlike ``loss``, which the
+        search selected for its own key."""
+        losses = np.asarray(self.heldout_losses)
+        finite = losses[np.isfinite(losses)]
+        return float(np.mean(finite)) if finite.size else float("nan")
 
 
 class _Layout(eqx.Module):
@@ -208,6 +225,10 @@ _TILE, _CAPACITY = 8, 16
 #: drawing fields at their widest for sizing the draws (agents beyond get a NaN loss)
 _WIDE = {"wrinkle_width": 0.6, "pore_width": 0.3, "blend": 0.5, "skew": 0.5, "sperturb": 1.0}
 
+
+#: Stream of the held-out simulation keys (:data:`HELDOUT_KEYS`), folded into the fit's
+#: simulation key (whose split gives the trials' keys)
+_HELDOUT_STREAM = 0x4E1D
 
 #: Seed of the fit's pores and graphs (any fixed value; not a user's seed, whose simulation and
 #: swarm streams must not repeat the pores').
@@ -821,6 +842,7 @@ def fit_wrinkles(
         refine_starts = fit_budget(*budget, refine_steps=refine_steps, mode=mode)[2]
     refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
     k_sim, k_swarm = jax.random.split(key)
+    heldout_keys = jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), HELDOUT_KEYS)
     layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels)
     whole = layout.merged()
     if settings.n_agents * (n_epochs + 1) * n_trials < SPLIT_FROM:
@@ -842,7 +864,8 @@ def fit_wrinkles(
     if refine_steps:
         like = _levels_from(jnp.asarray((low + high) / 2), names, base)  # the answer's types
         refine_args = (refining, target_stats, fields, (_REFINE_PASSES,) * 2, refine_steps)
-        ahead = compile_ahead(_refined, sim_keys[0], like, *refine_args)
+        start = jnp.float32(0)
+        ahead = compile_ahead(_refined, sim_keys[0], like, start, heldout_keys, *refine_args)
     # the fit's refinements by their starts, each solved once: a polish that gained nothing
     # comes back after the next rung when the swarm found nothing better, and as a start of the
     # final refinement (a map each: a few MB in all)
@@ -850,7 +873,7 @@ def fit_wrinkles(
 
     def refine(sim_key, params, start):
         """:func:`_refine` of ``params`` with a trial's simulation key from its swarm loss
-        ``start``: (levels, loss, map)."""
+        ``start``."""
         bits = np.asarray(jax.random.key_data(sim_key)).tobytes()
         name = (bits, np.asarray(params).tobytes(), float(start))
         if name not in solved:
@@ -858,7 +881,7 @@ def fit_wrinkles(
                 ahead.join()
             levels = _levels_from(jnp.asarray(params), names, base)
             solved[name] = _refine(
-                sim_key, levels, start, refining, target_stats, fields, refine_steps
+                sim_key, levels, start, refining, target_stats, fields, refine_steps, heldout_keys
             )
         return solved[name]
 
@@ -867,11 +890,11 @@ def fit_wrinkles(
         index = {name: i for i, name in enumerate(names)}
 
         def polish(sim_key, best, start):  # the refinement of a trial's best, as parameters
-            drawn, loss, _ = refine(sim_key, best, start)
+            refined = refine(sim_key, best, start)
             params = np.array(best)
             for lv, f, *_ in fields:
-                params[index[f"{lv + 1}.{f}"]] = float(getattr(drawn[lv], f))
-            return params, float(loss)
+                params[index[f"{lv + 1}.{f}"]] = float(getattr(refined.levels[lv], f))
+            return params, float(refined.loss)
 
     interrupted = False
     finished = list(range(n_trials))
@@ -885,27 +908,27 @@ def fit_wrinkles(
         interrupted = True
     swarm = _result(runs, low, high)
     epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
-    answers = []  # (trial, levels, loss, map) of each refined start
+    answers = []  # (trial, refined) of each start
     if not interrupted:
         try:
             starts = _starts(runs, finished, low, high, refine_starts if refine_steps else 1)
             for t, params, start in starts:
-                answers.append((t, *refine(sim_keys[t], params, start)))
+                answers.append((t, refine(sim_keys[t], params, start)))
         except KeyboardInterrupt:  # Ctrl-C while refining: the starts refined so far
             interrupted = True
     if not answers:  # the swarm's answer as it is, unrefined (a compile may still be running)
         sim_key = sim_keys[int(swarm.best_trial)]
         levels = _levels_from(swarm.params, names, base)
-        levels, _, image = _refine(sim_key, levels, swarm.loss, refining, target_stats, (), 0)
+        kept = _refine(sim_key, levels, swarm.loss, refining, target_stats, (), 0, heldout_keys)
         return WrinkleFit(
-            levels, swarm.loss, swarm.loss, swarm, names, sim_key, image, True, epochs,
-            answer_trial=int(swarm.best_trial),
+            kept.levels, swarm.loss, swarm.loss, swarm, names, sim_key, kept.image, True, epochs,
+            answer_trial=int(swarm.best_trial), heldout_losses=kept.heldout,
         )  # fmt: skip
-    t, refined, loss, image = min(answers, key=lambda a: float(a[2]))  # the first of equals
-    refined_losses = jnp.stack([a[2] for a in answers])
+    t, answer = min(answers, key=lambda a: float(a[1].loss))  # the first of equals
+    refined_losses = jnp.stack([a.loss for _, a in answers])
     return WrinkleFit(
-        refined, loss, swarm.loss, swarm, names, sim_keys[t], image, interrupted, epochs,
-        refined_losses, t,
+        answer.levels, answer.loss, swarm.loss, swarm, names, sim_keys[t], answer.image,
+        interrupted, epochs, refined_losses, t, answer.heldout,
     )  # fmt: skip
 
 
@@ -1089,24 +1112,35 @@ def _drawing_fields(names, low, high) -> tuple[tuple[int, str, float, float], ..
     )
 
 
-def _refine(sim_key, levels, start, layout, target_stats, fields, steps):
-    """BFGS on the drawing ``fields`` with the simulation result held fixed: the levels (α_d
-    snapped to the grid), their loss and map. ``start`` is the swarm's loss of ``levels``: the
-    answer is kept unless the refinement beats it (a redraw of the same parameters can differ
-    from the batched swarm's loss in the last bit)."""
+class _Refined(NamedTuple):
+    """A refinement's answer: its levels (α_d snapped to the grid), loss, map, and its losses
+    with the held-out simulation keys."""
+
+    levels: tuple[WrinkleParams, WrinkleParams]
+    loss: Array
+    image: Array
+    heldout: Array
+
+
+def _refine(sim_key, levels, start, layout, target_stats, fields, steps, heldout_keys):
+    """BFGS on the drawing ``fields`` with the simulation result held fixed. ``start`` is the
+    swarm's loss of ``levels``: the answer is kept unless the refinement beats it (a redraw of
+    the same parameters can differ from the batched swarm's loss in the last bit). The answer
+    is also simulated and drawn with each of ``heldout_keys``."""
     steps = steps if fields else 0
     passes = (_REFINE_PASSES,) * 2
+    start = jnp.asarray(start, jnp.float32)
     while True:
         drawn, fullest, images, losses = _refined(
-            sim_key, levels, layout, target_stats, fields, passes, steps
+            sim_key, levels, start, heldout_keys, layout, target_stats, fields, passes, steps
         )
         need = tuple(max(p, _refine_passes(int(c))) for p, c in zip(passes, fullest, strict=True))
         if need == passes or steps == 0:
             break
         passes = need  # the start's fullest tile needs more (rare): solve again with enough
     if steps == 0 or not bool(losses[1] < start):  # keep the swarm's answer unless beaten
-        return drawn[0], start, images[0]
-    return drawn[1], losses[1], images[1]
+        return _Refined(drawn[0], start, images[0], losses[2:])
+    return _Refined(drawn[1], losses[1], images[1], losses[2:])
 
 
 #: The refinement's static drawing passes at least (512 primitives per tile), so that almost
@@ -1128,12 +1162,16 @@ def _refine_passes(fullest: int) -> int:
 
 
 @functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
-def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, steps):
+def _refined(sim_key, levels, start, heldout_keys, layout: _Layout, target_stats, fields, passes,
+             steps):  # fmt: skip
     """One program for the whole refinement: the simulation of ``levels`` (α_d snapped), BFGS
     over the logits of ``fields`` (static, each in its search range) with the drawing's
     ``passes`` (static), and the map and loss (inf where undrawable) of the start and of the
-    answer, drawn by one compiled drawing (a forward draw costs a third of the solve's compile
-    time), with the start's fullest tile per level. ``steps == 0``: the start alone."""
+    answer, then of the one kept (the answer when its loss is below ``start``) simulated and
+    drawn with each of ``heldout_keys``: one compiled simulation and drawing in a scan (a
+    forward draw costs a third of the solve's compile time). Returns the start and the answer,
+    the start's fullest tile per level, the maps (start, answer, held out) and their losses.
+    ``steps == 0``: the answer is the start."""
     sims, levels = _simulate(sim_key, levels, layout)
 
     def unpack(z):
@@ -1151,16 +1189,26 @@ def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, ste
         u = jnp.clip((getattr(levels[lv], f) - lo) / (hi - lo), 1e-3, 1 - 1e-3)
         return jnp.log(u) - jnp.log1p(-u)
 
-    drawn = [levels]
+    answer = levels
     if steps:
         z0 = jnp.stack([logit(*field) for field in fields]).astype(jnp.float32)
         solver = optx.BFGS(rtol=1e-4, atol=1e-6)
         sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
-        drawn.append(unpack(sol.value))
+        answer = unpack(sol.value)
 
-    def draw(lv):
-        image, bad, fullest = _draw_checked(sim_key, sims, lv, layout)
-        return image, jnp.where(bad, jnp.inf, _loss(image, target_stats)), jnp.stack(fullest)
+    def pick(which, a, b):
+        return jax.tree.map(lambda x, y: jnp.where(which, x, y), a, b)
 
-    images, losses, fullest = jax.lax.map(draw, jax.tree.map(lambda *xs: jnp.stack(xs), *drawn))
-    return drawn, fullest[0], images, losses
+    def score(kept, item):  # the start, the answer, then the one kept with each held-out key
+        key, i = item
+        lv = pick(i == 1, answer, kept)
+        sims, lv = _simulate(key, lv, layout)
+        image, bad, fullest = _draw_checked(key, sims, lv, layout)
+        scored = jnp.where(bad, jnp.inf, _loss(image, target_stats))
+        kept = pick(i == 1, pick(scored < start, answer, levels), kept)
+        return kept, (image, scored, jnp.stack(fullest))
+
+    keys = jnp.concatenate([jnp.stack([sim_key, sim_key]), heldout_keys])
+    items = (keys, jnp.arange(keys.shape[0]))
+    _, (images, losses, fullest) = jax.lax.scan(score, levels, items)
+    return (levels, answer), fullest[0], images, losses
