@@ -5,9 +5,10 @@ RTX A6000). No reference tool exists.
 Targets: ``known-<seed>``, two-level maps drawn from known parameters (other pores, another
 simulation key than the fit's); ``brick`` and ``gravel``, crops of the skimage textures;
 ``synthesized``, a map from ``detail.synthesize`` with the gravel crop's statistics. Each line
-gives a mode's wall time, its swarm and refined loss, the epochs each trial ran and, for the
-synthetic targets, the recovered α_deposit and α_θ of level 1 against the truth; the paper
-mode's line adds the fast/paper ratios of time and loss when both ran on the target.
+gives a mode's wall time, its swarm and refined loss, its held-out loss (the answer with other
+simulation keys, ``WrinkleFit.heldout_loss``), the epochs each trial ran and, for the synthetic
+targets, the recovered α_deposit and α_θ of level 1 against the truth; the paper mode's line
+adds the fast/paper ratios of time, loss and held-out loss when both ran on the target.
 
 ``--save DIR`` keeps each target (``<target>.npy``) and each fit (``<target>-<mode>-<seed>.npz``:
 the fitted map, the swarm's history, the fitted levels as JSON) for
@@ -200,7 +201,7 @@ def main() -> None:
                     extra |= {
                         "time_fast_over_paper": round(fast_s / elapsed, 3),
                         "loss_fast_over_paper": round(fast_loss / float(fit.loss), 3),
-                        "heldout_fast_over_paper": round(fast_heldout / fit.heldout_loss, 3),
+                        "heldout_fast_over_paper": finite(fast_heldout / fit.heldout_loss),
                     }
                 report(
                     f"wrinkle fit, {mode} mode, target {name} {target.shape[0]}², seed {seed}, "
@@ -209,7 +210,7 @@ def main() -> None:
                     goal_s=600,
                     swarm_loss=float(fit.swarm_loss),
                     loss=float(fit.loss),
-                    heldout_loss=fit.heldout_loss,
+                    heldout_loss=finite(fit.heldout_loss),
                     epochs_run=list(fit.epochs_run),
                     evaluations=args.agents * sum(e + 1 for e in fit.epochs_run),
                     polishes=polish_count(fit, mode, args),
@@ -217,6 +218,11 @@ def main() -> None:
                     nonfinite_evaluations=int(np.sum(np.asarray(fit.swarm.n_nonfinite))),
                     **extra,
                 )
+
+
+def finite(value: float) -> float | None:
+    """A number for the report's JSON (None where it is not finite: JSON has no NaN)."""
+    return round(float(value), 6) if np.isfinite(value) else None
 
 
 if __name__ == "__main__":

@@ -116,6 +116,24 @@ def test_heldout_losses_score_the_answer_with_other_simulation_keys(fit, target,
     assert fit.heldout_loss > float(fit.loss)
 
 
+def test_the_refinement_scores_what_it_keeps_with_the_heldout_keys(fit, target, layout):
+    """The held-out losses are those of the levels the refinement returns: its answer when that
+    beats the start's loss (100), else the start (0), each with the held-out keys' swarm loss."""
+    names = (*NAMES, "1.wrinkle_width")
+    x = jnp.concatenate([fit.swarm.params, jnp.array([0.6], jnp.float32)])
+    stats = texture_stats(target)
+    fields = _drawing_fields(names, *_fit._bounds(names, D_RANGE, {})[:2])
+    for start, answer_kept in ((100.0, True), (0.0, False)):
+        refined = _refine(
+            fit.sim_key, _levels_from(x, names, TRUE), start, layout, stats, fields, 4, HELDOUT
+        )
+        width = refined.levels[0].wrinkle_width
+        assert (float(width) != float(x[-1])) == answer_kept
+        kept = x.at[-1].set(width)[None]
+        expected = [_SwarmLoss(k, stats, TRUE, layout, names)(kept)[0] for k in HELDOUT]
+        np.testing.assert_allclose(refined.heldout, expected, rtol=1e-5)
+
+
 def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layout, monkeypatch):
     """A loss that wants α_wrinkle-width small (minus the map's spread: this target's texture
     loss hardly depends on it): refined from 0.35, it reaches near Table 1's low end in a wide

@@ -174,16 +174,21 @@ def test_render_and_simulate_refuse_files_without_units(tmp_path, capsys):
 
 
 def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
-    """The fit's file states its frame (the fit itself is replaced by a stand-in: minutes)."""
+    """The fit's file states its frame (the fit itself is replaced by a stand-in: minutes), and
+    its held-out losses (null and said so where no held-out key could be drawn)."""
     from jface.cli import _fit
 
+    heldout = [0.5, 0.7]
+
     def fake_fit(key, patch, **kwargs):
+        losses = np.asarray(heldout, np.float32)
+        mean = float(np.mean(losses)) if np.all(np.isfinite(losses)) else float("nan")
         history = np.linspace(1.0, 0.5, 3)[None]
         swarm = SimpleNamespace(trial_losses=[0.5], n_nonfinite=np.zeros(1), history=history)
         return SimpleNamespace(levels=(LEVEL, LEVEL.replace(d=0.02)), loss=0.4, swarm_loss=0.5,
                                swarm=swarm, names=("d",), fitted=patch, epochs_run=(3,),
                                interrupted=False, refined_losses=[0.4], answer_trial=0,
-                               heldout_loss=0.6, heldout_losses=[0.5, 0.7])  # fmt: skip
+                               heldout_loss=mean, heldout_losses=losses)  # fmt: skip
 
     monkeypatch.setattr(_fit, "fit_wrinkles", fake_fit)
     square, wide = tmp_path / "square.npy", tmp_path / "wide.npy"
@@ -193,13 +198,21 @@ def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
     assert (
         main([*fit, str(square), "--out", str(tmp_path / "f.json"), "--patch-size", "64/1024"]) == 0
     )
-    units = read_json(tmp_path / "f.json")["units"]
-    assert units == {"frame": "patch", "patch_size": 0.0625, "patch_pixels": [64, 64]}
+    document = read_json(tmp_path / "f.json")
+    assert document["units"] == {"frame": "patch", "patch_size": 0.0625, "patch_pixels": [64, 64]}
+    assert document["fit"]["heldout_loss"] == pytest.approx(0.6)
+    assert document["fit"]["heldout_losses"] == pytest.approx([0.5, 0.7])
+    assert "0.6 with other simulation keys" in capsys.readouterr().out
     assert float(load_params(tmp_path / "f.json")[0].d) == pytest.approx(0.04 / 16)
-    # without the size: recorded as unknown, and said so
+    # without the size: recorded as unknown, and said so (and no held-out key drawable)
+    heldout[:] = [np.inf, np.inf]
     assert main([*fit, str(wide), "--out", str(tmp_path / "g.json")]) == 0
-    assert "not recorded (--patch-size)" in capsys.readouterr().err
-    assert read_json(tmp_path / "g.json")["units"]["patch_size"] is None
+    out, err = capsys.readouterr()
+    assert "not recorded (--patch-size)" in err and "undrawable with other simulation keys" in out
+    document = read_json(tmp_path / "g.json")
+    assert document["units"]["patch_size"] is None
+    assert document["fit"]["heldout_loss"] is None
+    assert document["fit"]["heldout_losses"] == [None, None]
     for argv, message in (
         ([str(wide), "--patch-size", "0.5"], "--patch-size needs a square patch"),
         ([str(square), "--patch-size", "1.5"], "--patch-size: a patch size must"),

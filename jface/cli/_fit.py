@@ -3,8 +3,8 @@
 One patch with ``--out P.json`` writes ``P.json`` and its figures beside it. Several patches (or
 ``--out`` a folder) write ``DIR/STEM.json`` and figures per patch, spread over the processes of
 the run (patch ``i`` on process ``i mod N``), resumably: a patch whose fit exists with the same
-key (the patch's bytes, every setting, the jface version) is kept, any other is fitted. Every
-patch is fitted with the same key, ``jax.random.key(--seed)``.
+key (the patch's bytes, every setting, the jface version and source) is kept, any other is
+fitted. Every patch is fitted with the same key, ``jax.random.key(--seed)``.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from jface.cli._processes import Elsewhere, add_process_options, spread
 from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import (
+    HELDOUT_KEYS,
     REFINE_STEPS,
     ParamUnits,
     fit_budget,
@@ -101,9 +102,7 @@ def register(subparsers) -> None:
     add_process_options(parser, "fitting a share of the patches")
     parser.set_defaults(
         run=_fit,
-        prose="loss {swarm_loss:.4g} (swarm) → {loss:.4g} (refined), {heldout_loss} with other "
-        "simulation keys; {nonfinite} non-finite evaluations; wrote {out}, {convergence}, "
-        "{comparison}",
+        prose=ONE_PROSE,
     )
 
 
@@ -127,6 +126,13 @@ def _units(patch_size: str | None, shape: tuple[int, int]) -> ParamUnits:
         raise ValueError(f"--patch-size: {err}") from None
 
 
+#: Prose summary of one patch's fit (:data:`UNDRAWN` when no held-out key could be drawn).
+ONE_PROSE = (
+    "loss {swarm_loss:.4g} (swarm) → {loss:.4g} (refined), {heldout_loss:.4g} with other "
+    "simulation keys; {nonfinite} non-finite evaluations; wrote {out}, {convergence}, "
+    "{comparison}"
+)
+UNDRAWN = ("{heldout_loss:.4g} with other", "undrawable with other")
 #: Prose summary of a fit of several patches (or into a folder).
 MANY_PROSE = (
     "fitted {fitted} patch(es), kept {kept} already done (same content and settings), in {out}/; "
@@ -169,6 +175,8 @@ def _fit(args: argparse.Namespace) -> dict:
     if summaries is None:
         return Elsewhere()
     if not many:  # the summary of one patch's fit, as before there were several
+        if summaries[0]["heldout_loss"] is None:
+            args.prose = ONE_PROSE.replace(*UNDRAWN)
         return {k: v for k, v in summaries[0].items() if k not in ("patch", "kept")}
     args.prose = MANY_PROSE
     losses = [s["loss"] for s in summaries]
@@ -229,7 +237,9 @@ def _fit_share(run, args, mode: str, outs: list[Path], *, resume: bool) -> list[
     process, n_processes = jax.process_index(), jax.process_count()
     if run is not None:
         fingerprint = json.dumps([[str(o) for o in outs], keys], sort_keys=True)
-        run.same_on_all("the command's arguments or its patches' contents", fingerprint)
+        run.same_on_all(
+            "the command's arguments, its patches' contents or jface's code", fingerprint
+        )
     mine = range(process, len(outs), n_processes)
     if len(outs) > 1:
         print(f"wrinkles fit: {len(outs)} patches, {len(mine)} on this process", file=sys.stderr)
@@ -290,10 +300,6 @@ def _finite_or_none(value) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
-def _rounded(loss: float | None) -> float | None:
-    return None if loss is None else float(f"{loss:.4g}")
-
-
 def _summary(out: Path, document: dict, kept: bool) -> dict:
     stem = out.with_suffix("")
     fit = document["fit"]
@@ -304,7 +310,7 @@ def _summary(out: Path, document: dict, kept: bool) -> dict:
         "comparison": f"{stem}_target_fit.png",
         "swarm_loss": fit["swarm_loss"],
         "loss": fit["loss"],
-        "heldout_loss": _rounded(fit.get("heldout_loss")),
+        "heldout_loss": fit.get("heldout_loss"),
         "nonfinite": int(np.sum(fit["nonfinite_losses"])),
         "kept": kept,
     }
@@ -319,10 +325,11 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
         args.agents, args.epochs, args.trials, refine_steps=args.refine_steps, mode=mode
     )
     # measured on 2 CPU cores: 0.16 s per agent and epoch at 256², a refinement step about 7 of
-    # those (polishes and the final refinement's starts), plus about 50 s of fixed cost (20 s
-    # when an earlier fit of this patch size left its compiled programs cached) and about 45 s
-    # more to build a layout that jface does not ship
-    evaluations = total * args.agents + (polishes + starts) * 7 * args.refine_steps
+    # those and each held-out key one (polishes and the final refinement's starts), plus about
+    # 50 s of fixed cost (20 s when an earlier fit of this patch size left its compiled
+    # programs cached) and about 45 s more to build a layout that jface does not ship
+    refinement = 7 * args.refine_steps + HELDOUT_KEYS
+    evaluations = total * args.agents + (polishes + starts) * refinement
     d_levels = D_LEVELS[mode] if args.d_levels is None else max(2, args.d_levels)
     shipped = layout_shipped(patch.shape, tuple(args.d_range), args.steps, d_levels)
     minutes = (evaluations * 0.16 * patch.size / 256**2 + 50 + 45 * (not shipped)) / 60

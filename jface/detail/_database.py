@@ -197,7 +197,9 @@ def _build_database(
         process, n_processes = jax.process_index(), jax.process_count()
         if run is not None:
             fingerprint = json.dumps([str(out), keys, records, chunk], sort_keys=True)
-            run.same_on_all("the command's arguments or its maps' contents", fingerprint)
+            run.same_on_all(
+                "the command's arguments, its maps' contents or jface's code", fingerprint
+            )
         mine = range(process, len(chunks), n_processes)
         devices = list(devices or jax.local_devices())
         estimate = Estimate(sum(len(chunks[i]) for i in mine), "map", enabled=progress)

@@ -38,6 +38,7 @@ from jface.wrinkles._extraction import (
     label_components,
 )
 from jface.wrinkles._fit import (
+    HELDOUT_KEYS,
     PAPER_NAMES,
     POLISH_FROM,
     REFINE_STARTS,
@@ -89,6 +90,7 @@ from jface.wrinkles._variation import perlin_variation
 __all__ = [
     "BETA",
     "FRAMES",
+    "HELDOUT_KEYS",
     "LENGTH_POWERS",
     "N_HAT",
     "N_SAMPLES",

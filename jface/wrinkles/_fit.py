@@ -97,8 +97,9 @@ REFINE_STEPS = {"fast": 10, "paper": 30}
 #: takes the extra starts while they cost at most a tenth of its swarm's evaluations (a 256²
 #: exploratory fit of 40 evaluations spent 23 s on 4 starts, half its time warm).
 REFINE_STARTS = 4
-#: Simulation keys that score a refined answer besides its own (:attr:`WrinkleFit.heldout_losses`);
-#: each costs about one swarm evaluation per refinement.
+#: Simulation keys that score a refined answer besides its own (:attr:`WrinkleFit.heldout_losses`):
+#: each costs one simulation and drawing per refinement, polishes included (one swarm
+#: evaluation; a refinement of 10 BFGS steps costs about 70).
 HELDOUT_KEYS = 4
 #: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
 STALL_TOLERANCE, PATIENCE = 1e-3, 10
@@ -153,7 +154,8 @@ class WrinkleFit(eqx.Module):
 
     @property
     def heldout_loss(self) -> float:
-        """Mean of the finite :attr:`heldout_losses` (NaN when none is): about what a map drawn
+        """Mean of the finite :attr:`heldout_losses`, those drawn (NaN when none is; a key whose
+        map overflows the fit's static draw sizes is not drawn): about what a map drawn
         with these parameters and another simulation key scores, unlike ``loss``, which the
         search selected for its own key."""
         losses = np.asarray(self.heldout_losses)
@@ -864,11 +866,11 @@ def fit_wrinkles(
     if refine_steps:
         like = _levels_from(jnp.asarray((low + high) / 2), names, base)  # the answer's types
         refine_args = (refining, target_stats, fields, (_REFINE_PASSES,) * 2, refine_steps)
-        start = jnp.float32(0)
-        ahead = compile_ahead(_refined, sim_keys[0], like, start, heldout_keys, *refine_args)
+        like_start = jnp.float32(0)
+        ahead = compile_ahead(_refined, sim_keys[0], like, like_start, heldout_keys, *refine_args)
     # the fit's refinements by their starts, each solved once: a polish that gained nothing
     # comes back after the next rung when the swarm found nothing better, and as a start of the
-    # final refinement (a map each: a few MB in all)
+    # final refinement (a map each, one per polish and start)
     solved = {}
 
     def refine(sim_key, params, start):
@@ -1202,8 +1204,12 @@ def _refined(sim_key, levels, start, heldout_keys, layout: _Layout, target_stats
     def score(kept, item):  # the start, the answer, then the one kept with each held-out key
         key, i = item
         lv = pick(i == 1, answer, kept)
-        sims, lv = _simulate(key, lv, layout)
-        image, bad, fullest = _draw_checked(key, sims, lv, layout)
+        # the start and the answer have the simulation above (the drawing fields do not enter
+        # it; their α_d is snapped already); a held-out key simulates anew
+        drawn_sims, lv = jax.lax.cond(
+            i < 2, lambda lv: (sims, lv), lambda lv: _simulate(key, lv, layout), lv
+        )
+        image, bad, fullest = _draw_checked(key, drawn_sims, lv, layout)
         scored = jnp.where(bad, jnp.inf, _loss(image, target_stats))
         kept = pick(i == 1, pick(scored < start, answer, levels), kept)
         return kept, (image, scored, jnp.stack(fullest))
