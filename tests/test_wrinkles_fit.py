@@ -109,7 +109,10 @@ def test_heldout_losses_score_the_answer_with_other_simulation_keys(fit, target,
     k_sim = jax.random.split(jax.random.key(0))[0]
     keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), _fit.HELDOUT_KEYS)
     stats = texture_stats(target)
-    expected = [_SwarmLoss(k, stats, TRUE, layout, NAMES)(fit.swarm.params[None])[0] for k in keys]
+    expected = [
+        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(fit.swarm.params[None])[0]
+        for k in keys
+    ]
     np.testing.assert_allclose(fit.heldout_losses, expected, rtol=1e-5)
     assert np.all(np.isfinite(fit.heldout_losses)) and len(set(np.asarray(expected))) == len(keys)
     assert fit.heldout_loss == pytest.approx(float(np.mean(expected)), rel=1e-5)
@@ -130,7 +133,9 @@ def test_the_refinement_scores_what_it_keeps_with_the_heldout_keys(fit, target, 
         width = refined.levels[0].wrinkle_width
         assert (float(width) != float(x[-1])) == answer_kept
         kept = x.at[-1].set(width)[None]
-        expected = [_SwarmLoss(k, stats, TRUE, layout, names)(kept)[0] for k in HELDOUT]
+        expected = [
+            eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, names))(kept)[0] for k in HELDOUT
+        ]
         np.testing.assert_allclose(refined.heldout, expected, rtol=1e-5)
 
 
