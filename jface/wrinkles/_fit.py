@@ -138,7 +138,8 @@ class WrinkleFit(eqx.Module):
         heldout_losses: losses of ``levels`` simulated and drawn with :data:`HELDOUT_KEYS`
             other simulation keys (the same pores; inf where the fit's static draw sizes cannot
             draw one). ``loss`` is the least of many answers on one key and so flatters the
-            parameters; :attr:`heldout_loss`, the mean of these, does not.
+            parameters; :attr:`heldout_loss`, the mean of these, flatters them less (it keeps
+            the fit's pores, which a render with another seed also resamples).
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
