@@ -398,7 +398,8 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     standard = [(m - m.mean()) / max(float(m.std()), 1e-12) for m in maps]
     pair = plots.panel_grid(
         [[shade(patch), shade(fit.fitted)], standard],
-        title=f"Wrinkle fit: measured patch and fitted simulation (loss {float(fit.loss):.3g})",
+        title=f"Wrinkle fit: measured patch and fitted simulation\n(loss {float(fit.loss):.3g}; "
+        f"{fit.heldout_loss:.3g} with other simulation keys)",
         col_labels=["measured", "fitted"],
         row_labels=["shaded relief", "displacement"],
         quantities=["relief", "displacement"],
