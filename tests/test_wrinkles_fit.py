@@ -293,7 +293,7 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     assert np.array_equal(runs[0].swarm.params, runs[1].swarm.params)
     assert len(looked_up) == 2  # the first fit's design and layout; the second kept them
     # rungs of n_epochs // 8 = 1 epoch: three trials run one, the better two another, the best
-    # goes on to n_epochs = 10 unless it stalls (10 epochs without a 0.1 % gain)
+    # goes on to n_epochs = 10 unless it stalls (10 epochs without a 1 % gain)
     epochs = sorted(runs[0].epochs_run)
     assert epochs[:2] == [1, 2] and 2 < epochs[2] <= 10
     # at most: three rungs of one epoch, two more, the last trial's eight; no polishes
