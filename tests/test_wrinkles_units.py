@@ -191,6 +191,11 @@ def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
                                heldout_loss=mean, heldout_losses=losses)  # fmt: skip
 
     monkeypatch.setattr(_fit, "fit_wrinkles", fake_fit)
+    titles = []
+    grid = _fit.plots.panel_grid
+    monkeypatch.setattr(
+        _fit.plots, "panel_grid", lambda *a, **k: titles.append(k["title"]) or grid(*a, **k)
+    )
     square, wide = tmp_path / "square.npy", tmp_path / "wide.npy"
     np.save(square, np.random.default_rng(0).normal(size=(64, 64)).astype(np.float32))
     np.save(wide, np.random.default_rng(0).normal(size=(64, 96)).astype(np.float32))
@@ -203,12 +208,14 @@ def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
     assert document["fit"]["heldout_loss"] == pytest.approx(0.6)
     assert document["fit"]["heldout_losses"] == pytest.approx([0.5, 0.7])
     assert "0.6 with other simulation keys" in capsys.readouterr().out
+    assert "0.6 with other simulation keys" in titles[-1]  # the target/fit figure's title
     assert float(load_params(tmp_path / "f.json")[0].d) == pytest.approx(0.04 / 16)
     # without the size: recorded as unknown, and said so (and no held-out key drawable)
     heldout[:] = [np.inf, np.inf]
     assert main([*fit, str(wide), "--out", str(tmp_path / "g.json")]) == 0
     out, err = capsys.readouterr()
     assert "not recorded (--patch-size)" in err and "undrawable with other simulation keys" in out
+    assert "undrawable with other simulation keys" in titles[-1]
     document = read_json(tmp_path / "g.json")
     assert document["units"]["patch_size"] is None
     assert document["fit"]["heldout_loss"] is None

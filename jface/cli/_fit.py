@@ -396,10 +396,12 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     # [0, 1] and the zero-mean fit on one scale would saturate)
     maps = [np.asarray(m, np.float64) for m in (patch, fit.fitted)]
     standard = [(m - m.mean()) / max(float(m.std()), 1e-12) for m in maps]
+    heldout = document["fit"]["heldout_loss"]
+    heldout = "undrawable" if heldout is None else f"{heldout:.3g}"
     pair = plots.panel_grid(
         [[shade(patch), shade(fit.fitted)], standard],
         title=f"Wrinkle fit: measured patch and fitted simulation\n(loss {float(fit.loss):.3g}; "
-        f"{fit.heldout_loss:.3g} with other simulation keys)",
+        f"{heldout} with other simulation keys)",
         col_labels=["measured", "fitted"],
         row_labels=["shaded relief", "displacement"],
         quantities=["relief", "displacement"],
