@@ -230,6 +230,40 @@ def test_packed_bins_and_passes_as_needed_draw_the_same_map(level):
     assert float(jnp.std(static)) > 0.01
 
 
+@pytest.mark.parametrize("periodic", [True, False])
+def test_bins_list_each_tiles_primitives_in_order(level, periodic):
+    """Every tile's bin holds exactly the valid primitives whose reach (width × profile extent ×
+    stretch, plus the largest centre-line offset) overlaps it, in primitive order, against a
+    loop over the primitives' pixel boxes; on a periodic map a box wraps round, on a plain one it
+    is cut at the border."""
+    graph, weights, params = level
+    key = jax.random.key(5)
+    prims = primitives(key, graph, weights, params, (N, N))
+    # some invalid primitives among the valid ones: they take no slot
+    prims = prims._replace(valid=prims.valid & (jnp.arange(prims.valid.shape[0]) % 5 != 0))
+    tile, grid = 8, N // 8
+    bins = bin_primitives(prims, (N, N), tile=tile, span=grid, bulge=True, periodic=periodic)
+    p = jax.tree.map(np.asarray, prims)
+    reach = p.width * 3.0 * p.stretch + np.abs(p.offsets).max(-1)
+    ends = np.stack([p.p0, p.p0 + p.delta])
+    lo, hi = ends.min(0) - reach[:, None], ends.max(0) + reach[:, None]
+    first, last = np.floor(lo * N / tile).astype(int), np.floor(hi * N / tile).astype(int)
+    expected = [[] for _ in range(grid * grid)]
+    for i in np.flatnonzero(p.valid):
+        xs, ys = range(first[i, 0], last[i, 0] + 1), range(first[i, 1], last[i, 1] + 1)
+        cells = {(x % grid, y % grid) for x in xs for y in ys}
+        if not periodic:
+            cells = {(x, y) for x in xs for y in ys if 0 <= x < grid and 0 <= y < grid}
+        for x, y in cells:
+            expected[y * grid + x].append(i)
+    order, start, count = map(np.asarray, (bins.order, bins.start, bins.count))
+    assert not bool(bins.overflow)
+    np.testing.assert_array_equal(count, [len(e) for e in expected])
+    for t, e in enumerate(expected):
+        np.testing.assert_array_equal(order[start[t] : start[t] + count[t]], e)
+    assert count.max() > 1 and count.min() < count.max()  # there is something to sort
+
+
 def test_passes_beyond_the_need_change_neither_map_nor_gradient(level):
     """A tile batch skips the passes beyond its fullest tile: a static bound four times the need
     (as the fit's refinement sets one bound for every answer) gives the same map and the same
