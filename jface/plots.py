@@ -19,6 +19,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LogNorm, Normalize, TwoSlopeNorm
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
 
 from jface import _checks
 
@@ -220,8 +221,10 @@ def lines(
         ax.plot(x, y, label=label, marker="o" if markers else None, markersize=3, linewidth=1.4)
     if logx:
         ax.set_xscale("log")
+        _plain_within_a_decade(ax.xaxis, ax.get_xlim())
     if logy:
         ax.set_yscale("log")
+        _plain_within_a_decade(ax.yaxis, ax.get_ylim())
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.grid(True, which="major", alpha=0.3)
@@ -229,6 +232,16 @@ def lines(
         ax.legend(fontsize=8, frameon=False)
     figure.suptitle(title, fontsize=11)
     return figure
+
+
+def _plain_within_a_decade(axis, limits) -> None:
+    """Plain tick labels (``1.716``) on a log axis spanning less than a decade, where
+    matplotlib labels its minor ticks ``1.716×10⁰``; wider axes keep the powers of ten."""
+    low, high = limits
+    if low > 0 and high / low < 10:
+        plain = FuncFormatter(lambda value, _: f"{value:.4g}")
+        axis.set_major_formatter(plain)
+        axis.set_minor_formatter(plain)
 
 
 def heatmap(

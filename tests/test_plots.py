@@ -10,6 +10,7 @@ import matplotlib
 import numpy as np
 import pytest
 from conftest import titled, value_images_have_colour_bars, write_aged_maps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from PIL import Image
 
 from jface import detail, faces, io, plots
@@ -81,6 +82,25 @@ def test_convergence_draws_one_labelled_line_per_trial_on_a_log_axis():
     assert ax.get_yscale() == "log" and ax.get_xlabel() == "epoch" and ax.get_ylabel()
     np.testing.assert_array_equal(ax.get_lines()[1].get_ydata(), history[1])
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["trial 1", "trial 2", "trial 3"]
+
+
+def test_a_log_axis_within_a_decade_reads_plain_numbers():
+    """A short fit's losses span less than a decade: its tick labels are plain numbers, not
+    ``1.716×10⁰``; a history over decades keeps the powers of ten."""
+
+    def labels(history):
+        figure = plots.convergence(np.asarray(history), title="Fit")
+        FigureCanvasAgg(figure).draw()
+        ax = figure.axes[0]
+        low, high = ax.get_ylim()
+        ticks = ax.yaxis.get_majorticklabels() + ax.yaxis.get_minorticklabels()
+        return [t.get_text() for t in ticks if t.get_text() and low <= t.get_position()[1] <= high]
+
+    narrow = labels([[1.716, 1.716, 1.705]])
+    assert narrow and not any("10^" in t or "times" in t for t in narrow)
+    assert all(1.6 < float(t) < 1.8 for t in narrow)
+    wide = labels([[10.0, 1.0, 0.01]])
+    assert any("10^" in t for t in wide)
 
 
 def test_axes_grid_gives_a_titled_figure_of_empty_axes_to_draw_on():
