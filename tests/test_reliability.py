@@ -23,6 +23,7 @@ import pytest
 from PIL import Image
 
 from jface import _compilation, detail, faces, io, mesh
+from jface.cli import _fit as cli_fit
 from jface.cli import main
 from jface.cli._mesh import write_face
 from jface.mesh import LANDMARK_NAMES
@@ -393,6 +394,22 @@ def test_db_build_checks_every_size_before_any_work(tmp_path, capsys, monkeypatc
     monkeypatch.setattr(detail._database, "analyze_batch", lambda *a, **k: calls.append(a))
     argv = ["db", "build", *maps, "--out", tmp_path / "db.npz", "--chunk", "1"]
     assert "must have one size" in refused(tmp_path, argv, capsys, "small.exr", "m0.exr")
+    assert calls == []
+
+
+def test_wrinkles_fit_checks_every_patch_before_any_work(tmp_path, capsys, monkeypatch):
+    """A batch whose third patch is not square stops before the first is fitted, naming that
+    patch; so does a constant one."""
+    patches = [tmp_path / f"p{i}.npy" for i in range(3)]
+    for path in patches:
+        np.save(path, noise())
+    np.save(tmp_path / "wide.npy", RNG.standard_normal((64, 80)).astype(np.float32))
+    np.save(tmp_path / "flat.npy", np.ones((64, 64), np.float32))
+    calls = []
+    monkeypatch.setattr(cli_fit, "fit_wrinkles", lambda *a, **k: calls.append(a))
+    for bad, what in (("wide.npy", "must be square"), ("flat.npy", "is constant")):
+        argv = ["wrinkles", "fit", *patches[:2], tmp_path / bad, patches[2], "--out", tmp_path]
+        assert what in refused(tmp_path, argv, capsys, bad)
     assert calls == []
 
 

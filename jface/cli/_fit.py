@@ -33,7 +33,7 @@ from jface.wrinkles import (
     params_to_json,
     parse_patch_size,
 )
-from jface.wrinkles._fit import D_LEVELS, layout_shipped
+from jface.wrinkles._fit import D_LEVELS, checked_target, layout_shipped
 
 
 def register(subparsers) -> None:
@@ -163,6 +163,12 @@ def _fit(args: argparse.Namespace) -> dict:
         check_output(out, (".json",))
         for suffix in _FIGURES:
             check_output(f"{out.with_suffix('')}{suffix}", (".png",))
+    for patch in args.patches:  # and every patch, so a bad one stops the batch before it starts
+        target = read_map(patch, args.channel)
+        try:
+            checked_target(target)
+        except ValueError as err:
+            raise ValueError(f"{patch}: {err}") from None
     if spread(args, _command(args)):
         return Elsewhere()  # process 0 of the launched processes reports
     run = _Run() if jax.process_count() > 1 else None

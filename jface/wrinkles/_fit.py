@@ -727,6 +727,26 @@ def _search_range(name: str, given: Any, allowed: tuple[float, float]) -> tuple[
     return lo, hi
 
 
+def checked_target(target_patch: Any) -> Float[Array, "H W"]:
+    """``target_patch`` as the float32 map :func:`fit_wrinkles` fits, or the error it would
+    raise: a patch that is not a finite 2-D float map, not square (the fit draws a periodic
+    map), under 64² (the loss compares 4 pyramid levels) or constant. For checking many patches
+    before fitting any."""
+    target = _checks.float_array(target_patch, "target_patch", ndim=2, dtype=jnp.float32)
+    if target.shape[0] != target.shape[1]:
+        raise ValueError(
+            f"target_patch must be square (the fit draws a periodic map), got {target.shape}"
+        )
+    if target.shape[0] < 64:
+        raise ValueError(
+            f"target_patch must be at least 64×64 (the loss compares 4 pyramid levels), got "
+            f"{target.shape}"
+        )
+    if float(jnp.std(target)) == 0.0:
+        raise ValueError("target_patch is constant: there is no texture to fit")
+    return target
+
+
 def fit_wrinkles(
     key: Any,
     target_patch: Any,
@@ -800,18 +820,7 @@ def fit_wrinkles(
     """
     key = _checks.key(key)
     mesh = _agent_mesh(devices)
-    target = _checks.float_array(target_patch, "target_patch", ndim=2, dtype=jnp.float32)
-    if target.shape[0] != target.shape[1]:
-        raise ValueError(
-            f"target_patch must be square (the fit draws a periodic map), got {target.shape}"
-        )
-    if target.shape[0] < 64:
-        raise ValueError(
-            f"target_patch must be at least 64×64 (the loss compares 4 pyramid levels), got "
-            f"{target.shape}"
-        )
-    if float(jnp.std(target)) == 0.0:
-        raise ValueError("target_patch is constant: there is no texture to fit")
+    target = checked_target(target_patch)
     names = tuple(names)
     known = {"d", "fnoise", "snoise"} | {f"{lv}.{n}" for lv in (1, 2) for n in PARAMETER_RANGES}
     unknown = [n for n in names if n not in known or n in ("1.d", "2.d")]
