@@ -196,8 +196,9 @@ def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(
         _fit.plots, "panel_grid", lambda *a, **k: titles.append(k["title"]) or grid(*a, **k)
     )
-    square, wide = tmp_path / "square.npy", tmp_path / "wide.npy"
+    square, other, wide = (tmp_path / f"{n}.npy" for n in ("square", "other", "wide"))
     np.save(square, np.random.default_rng(0).normal(size=(64, 64)).astype(np.float32))
+    np.save(other, np.random.default_rng(1).normal(size=(96, 96)).astype(np.float32))
     np.save(wide, np.random.default_rng(0).normal(size=(64, 96)).astype(np.float32))
     fit = ["wrinkles", "fit", "--iters", "1", "--trials", "1"]
     assert (
@@ -212,7 +213,7 @@ def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
     assert float(load_params(tmp_path / "f.json")[0].d) == pytest.approx(0.04 / 16)
     # without the size: recorded as unknown, and said so (and no held-out key drawable)
     heldout[:] = [np.inf, np.inf]
-    assert main([*fit, str(wide), "--out", str(tmp_path / "g.json")]) == 0
+    assert main([*fit, str(other), "--out", str(tmp_path / "g.json")]) == 0
     out, err = capsys.readouterr()
     assert "not recorded (--patch-size)" in err and "undrawable with other simulation keys" in out
     assert "undrawable with other simulation keys" in titles[-1]
@@ -221,7 +222,7 @@ def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
     assert document["fit"]["heldout_loss"] is None
     assert document["fit"]["heldout_losses"] == [None, None]
     for argv, message in (
-        ([str(wide), "--patch-size", "0.5"], "--patch-size needs a square patch"),
+        ([str(wide), "--patch-size", "0.5"], "wide.npy: target_patch must be square"),
         ([str(square), "--patch-size", "1.5"], "--patch-size: a patch size must"),
         ([str(square), "--patch-size", "0"], "--patch-size: a patch size must"),
     ):

@@ -115,12 +115,7 @@ def _units(patch_size: str | None, shape: tuple[int, int]) -> ParamUnits:
             file=sys.stderr,
         )
         return ParamUnits("patch", None, shape)
-    if shape[0] != shape[1]:
-        raise ValueError(
-            f"--patch-size needs a square patch: the fit stretches its unit square over the "
-            f"{shape[0]}×{shape[1]} patch, so its lengths have no single size on the face"
-        )
-    try:
+    try:  # the patch is square (checked_target): its lengths have one size on the face
         return ParamUnits("patch", parse_patch_size(patch_size), shape)
     except ValueError as err:
         raise ValueError(f"--patch-size: {err}") from None
