@@ -173,24 +173,33 @@ def test_render_and_simulate_refuse_files_without_units(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old.json"]
 
 
+def _stand_in_fit(heldout: list, loss: float = 0.4):
+    """A stand-in for ``fit_wrinkles`` (a real fit takes minutes) whose answer has ``loss``
+    (the swarm's is 0.5, or inf with it) and the held-out losses ``heldout``."""
+
+    def fit(key, patch, **kwargs):
+        losses = np.asarray(heldout, np.float32)
+        mean = float(np.mean(losses)) if np.all(np.isfinite(losses)) else float("nan")
+        swarm_loss = 0.5 if np.isfinite(loss) else loss
+        history = np.linspace(1.0, 0.5, 3)[None] if np.isfinite(loss) else np.full((1, 3), loss)
+        swarm = SimpleNamespace(trial_losses=[swarm_loss], n_nonfinite=np.zeros(1),
+                                history=history)  # fmt: skip
+        return SimpleNamespace(
+            levels=(LEVEL, LEVEL.replace(d=0.02)), loss=loss, swarm_loss=swarm_loss, swarm=swarm,
+            names=("d",), fitted=patch, epochs_run=(3,), interrupted=False,
+            refined_losses=[loss], answer_trial=0, heldout_loss=mean, heldout_losses=losses,
+        )  # fmt: skip
+
+    return fit
+
+
 def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
     """The fit's file states its frame (the fit itself is replaced by a stand-in: minutes), and
     its held-out losses (null and said so where no held-out key could be drawn)."""
     from jface.cli import _fit
 
     heldout = [0.5, 0.7]
-
-    def fake_fit(key, patch, **kwargs):
-        losses = np.asarray(heldout, np.float32)
-        mean = float(np.mean(losses)) if np.all(np.isfinite(losses)) else float("nan")
-        history = np.linspace(1.0, 0.5, 3)[None]
-        swarm = SimpleNamespace(trial_losses=[0.5], n_nonfinite=np.zeros(1), history=history)
-        return SimpleNamespace(levels=(LEVEL, LEVEL.replace(d=0.02)), loss=0.4, swarm_loss=0.5,
-                               swarm=swarm, names=("d",), fitted=patch, epochs_run=(3,),
-                               interrupted=False, refined_losses=[0.4], answer_trial=0,
-                               heldout_loss=mean, heldout_losses=losses)  # fmt: skip
-
-    monkeypatch.setattr(_fit, "fit_wrinkles", fake_fit)
+    monkeypatch.setattr(_fit, "fit_wrinkles", _stand_in_fit(heldout))
     titles = []
     grid = _fit.plots.panel_grid
     monkeypatch.setattr(
@@ -229,6 +238,37 @@ def test_fit_records_the_patch_frame(tmp_path, monkeypatch, capsys):
         assert main([*fit, *argv, "--out", str(tmp_path / "h.json")]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "h.json").exists()
+
+
+def test_an_undrawable_fit_writes_strict_json_and_says_so(tmp_path, monkeypatch, capsys):
+    """A fit whose every evaluation was undrawable (all losses infinite) writes null for them,
+    never JSON's missing Infinity, and its summary line and figure title say "undrawable"; so
+    does a batch's summary when no patch could be drawn."""
+    from jface.cli import _fit
+
+    monkeypatch.setattr(_fit, "fit_wrinkles", _stand_in_fit([np.inf], loss=np.inf))
+    titles = []
+    grid = _fit.plots.panel_grid
+    monkeypatch.setattr(
+        _fit.plots, "panel_grid", lambda *a, **k: titles.append(k["title"]) or grid(*a, **k)
+    )
+    patch = tmp_path / "patch.npy"
+    np.save(patch, np.random.default_rng(0).normal(size=(64, 64)).astype(np.float32))
+    fit = ["wrinkles", "fit", "--iters", "1", "--trials", "1", str(patch)]
+
+    def strict(text):  # JSON as the standard has it: no NaN or Infinity
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))
+
+    assert main([*fit, "--out", str(tmp_path / "f.json")]) == 0
+    document = strict((tmp_path / "f.json").read_text())["fit"]
+    assert document["loss"] is document["swarm_loss"] is None
+    assert document["refined_losses"] == document["trial_losses"] == [None]
+    out = capsys.readouterr().out
+    assert "loss undrawable (swarm) → undrawable (refined), undrawable with other" in out
+    assert "(loss undrawable; undrawable with other simulation keys)" in titles[-1]
+    assert main([*fit, "--out", str(tmp_path / "batch"), "--json"]) == 0
+    summary = strict(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["min_loss"] is summary["max_loss"] is None
 
 
 def _pore_density(image: np.ndarray, margin: int = 10) -> float:

@@ -121,13 +121,12 @@ def _units(patch_size: str | None, shape: tuple[int, int]) -> ParamUnits:
         raise ValueError(f"--patch-size: {err}") from None
 
 
-#: Prose summary of one patch's fit (:data:`UNDRAWN` when no held-out key could be drawn).
+#: Prose summary of one patch's fit (a null loss is said "undrawable", :func:`_undrawn`).
 ONE_PROSE = (
     "loss {swarm_loss:.4g} (swarm) → {loss:.4g} (refined), {heldout_loss:.4g} with other "
     "simulation keys; {nonfinite} non-finite evaluations; wrote {out}, {convergence}, "
     "{comparison}"
 )
-UNDRAWN = ("{heldout_loss:.4g} with other", "undrawable with other")
 #: Prose summary of a fit of several patches (or into a folder).
 MANY_PROSE = (
     "fitted {fitted} patch(es), kept {kept} already done (same content and settings), in {out}/; "
@@ -176,19 +175,28 @@ def _fit(args: argparse.Namespace) -> dict:
     if summaries is None:
         return Elsewhere()
     if not many:  # the summary of one patch's fit, as before there were several
-        if summaries[0]["heldout_loss"] is None:
-            args.prose = ONE_PROSE.replace(*UNDRAWN)
-        return {k: v for k, v in summaries[0].items() if k not in ("patch", "kept")}
-    args.prose = MANY_PROSE
-    losses = [s["loss"] for s in summaries]
-    return {
+        summary = {k: v for k, v in summaries[0].items() if k not in ("patch", "kept")}
+        args.prose = _undrawn(ONE_PROSE, summary)
+        return summary
+    losses = [s["loss"] for s in summaries if s["loss"] is not None]
+    summary = {
         "out": args.out,
         "fitted": sum(not s["kept"] for s in summaries),
         "kept": sum(s["kept"] for s in summaries),
-        "min_loss": min(losses),
-        "max_loss": max(losses),
+        "min_loss": min(losses, default=None),
+        "max_loss": max(losses, default=None),
         "patches": summaries,
     }
+    args.prose = _undrawn(MANY_PROSE, summary)
+    return summary
+
+
+def _undrawn(prose: str, summary: dict) -> str:
+    """``prose`` with each loss that is null (no drawable answer) said as "undrawable"."""
+    for name, value in summary.items():
+        if value is None:
+            prose = prose.replace(f"{{{name}:.4g}}", "undrawable")
+    return prose
 
 
 def _into_folder(patches: list[str], out: str) -> bool:
@@ -297,8 +305,16 @@ def _done(out: Path, patch: str, key: str) -> dict | None:
 
 
 def _finite_or_none(value) -> float | None:
-    """A loss for JSON, which has no infinity or NaN."""
+    """A loss for JSON, which has no infinity or NaN (null: undrawable)."""
     return float(value) if np.isfinite(value) else None
+
+
+def _finite_list(values) -> list[float | None]:
+    return [_finite_or_none(v) for v in np.asarray(values).ravel()]
+
+
+def _shown(loss: float | None) -> str:
+    return "undrawable" if loss is None else f"{loss:.3g}"
 
 
 def _summary(out: Path, document: dict, kept: bool) -> dict:
@@ -369,14 +385,14 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     document = json.loads(params_to_json(list(fit.levels), units))
     document |= {
         "fit": {
-            "loss": float(fit.loss),
-            "swarm_loss": float(fit.swarm_loss),
-            "refined_losses": np.asarray(fit.refined_losses).tolist(),
+            "loss": _finite_or_none(fit.loss),
+            "swarm_loss": _finite_or_none(fit.swarm_loss),
+            "refined_losses": _finite_list(fit.refined_losses),
             # the answer with other simulation keys (null: undrawable at the fit's draw sizes)
             "heldout_loss": _finite_or_none(fit.heldout_loss),
-            "heldout_losses": [_finite_or_none(v) for v in np.asarray(fit.heldout_losses)],
+            "heldout_losses": _finite_list(fit.heldout_losses),
             "answer_trial": fit.answer_trial,
-            "trial_losses": np.asarray(fit.swarm.trial_losses).tolist(),
+            "trial_losses": _finite_list(fit.swarm.trial_losses),
             "nonfinite_losses": np.asarray(fit.swarm.n_nonfinite).tolist(),
             "names": list(fit.names),
             "mode": mode,
@@ -398,12 +414,12 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     # [0, 1] and the zero-mean fit on one scale would saturate)
     maps = [np.asarray(m, np.float64) for m in (patch, fit.fitted)]
     standard = [(m - m.mean()) / max(float(m.std()), 1e-12) for m in maps]
-    heldout = document["fit"]["heldout_loss"]
-    heldout = "undrawable" if heldout is None else f"{heldout:.3g}"
+    losses = document["fit"]
     pair = plots.panel_grid(
         [[shade(patch), shade(fit.fitted)], standard],
-        title=f"Wrinkle fit: measured patch and fitted simulation\n(loss {float(fit.loss):.3g}; "
-        f"{heldout} with other simulation keys)",
+        title="Wrinkle fit: measured patch and fitted simulation\n"
+        f"(loss {_shown(losses['loss'])}; {_shown(losses['heldout_loss'])} with other simulation "
+        "keys)",
         col_labels=["measured", "fitted"],
         row_labels=["shaded relief", "displacement"],
         quantities=["relief", "displacement"],
