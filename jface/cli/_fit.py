@@ -157,14 +157,16 @@ def _fit(args: argparse.Namespace) -> dict:
         check_output(out, (".json",))
         for suffix in _FIGURES:
             check_output(f"{out.with_suffix('')}{suffix}", (".png",))
-    for patch in args.patches:  # and every patch, so a bad one stops the batch before it starts
+    if spread(args, _command(args)):
+        return Elsewhere()  # process 0 of the launched processes reports
+    # every patch checked before any is fitted (in each process: after jax.distributed starts),
+    # so a bad one stops the batch before it starts
+    for patch in args.patches:
         target = read_map(patch, args.channel)
         try:
             checked_target(target)
         except ValueError as err:
             raise ValueError(f"{patch}: {err}") from None
-    if spread(args, _command(args)):
-        return Elsewhere()  # process 0 of the launched processes reports
     run = _Run() if jax.process_count() > 1 else None
     try:
         summaries = _fit_share(run, args, mode, outs, resume=many)
