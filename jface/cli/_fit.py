@@ -162,7 +162,7 @@ def _fit(args: argparse.Namespace) -> dict:
     # every patch checked before any is fitted (in each process: after jax.distributed starts),
     # so a bad one stops the batch before it starts
     for patch in args.patches:
-        target = read_map(patch, args.channel)
+        target = read_map(patch, args.channel)  # read errors name the file themselves
         try:
             checked_target(target)
         except ValueError as err:
