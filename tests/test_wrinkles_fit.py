@@ -40,7 +40,7 @@ TRUE = (
     WrinkleParams(d=0.0225, theta=1.0, s=0.2, deposit=0.6, snoise=0.001),
 )
 SMALL = {"d_range": D_RANGE, "n_agents": 10, "n_epochs": 10, "n_steps": 30, "d_levels": 4}
-# held-out simulation keys for refinements outside a fit (as many as a fit's: one program)
+# held-out simulation keys for scores outside a fit (as many as a fit's)
 HELDOUT = jax.random.split(jax.random.key(5), _fit.HELDOUT_KEYS)
 
 
@@ -94,7 +94,7 @@ def test_refinement_never_worsens_and_history_is_monotone(fit, target, layout):
     start = _SwarmLoss(fit.sim_key, texture_stats(target), TRUE, layout, names)(x[None])[0]
     levels = _levels_from(x, names, TRUE)
     fields = _drawing_fields(names, *_fit._bounds(names, D_RANGE, {})[:2])
-    args = (layout, texture_stats(target), fields, 4, HELDOUT)
+    args = (layout, texture_stats(target), fields, 4)
     assert float(_refine(fit.sim_key, levels, start, *args).loss) <= float(start)
     assert float(fit.loss) <= float(fit.swarm_loss)
     assert np.all(np.diff(np.asarray(fit.swarm.history), axis=1) <= 0)
@@ -119,24 +119,40 @@ def test_heldout_losses_score_the_answer_with_other_simulation_keys(fit, target,
     assert fit.heldout_loss > float(fit.loss)
 
 
-def test_the_refinement_scores_what_it_keeps_with_the_heldout_keys(fit, target, layout):
-    """The held-out losses are those of the levels the refinement returns: its answer when that
-    beats the start's loss (100), else the start (0), each with the held-out keys' swarm loss."""
+def test_the_refinement_keeps_its_answer_and_map_only_when_it_beats_the_start(fit, target, layout):
+    """The refinement returns its answer, with that answer's loss and map (the solve's last
+    accepted step, the same as drawn anew), when it beats the start's loss (100); else the start
+    (loss 0) with no map, which the fit draws only if it reports that start."""
     names = (*NAMES, "1.wrinkle_width")
     x = jnp.concatenate([fit.swarm.params, jnp.array([0.6], jnp.float32)])
     stats = texture_stats(target)
     fields = _drawing_fields(names, *_fit._bounds(names, D_RANGE, {})[:2])
-    for start, answer_kept in ((100.0, True), (0.0, False)):
-        refined = _refine(
-            fit.sim_key, _levels_from(x, names, TRUE), start, layout, stats, fields, 4, HELDOUT
-        )
-        width = refined.levels[0].wrinkle_width
-        assert (float(width) != float(x[-1])) == answer_kept
-        kept = x.at[-1].set(width)[None]
-        expected = [
-            eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, names))(kept)[0] for k in HELDOUT
-        ]
-        np.testing.assert_allclose(refined.heldout, expected, rtol=1e-5)
+    levels = _levels_from(x, names, TRUE)
+    answer = _refine(fit.sim_key, levels, 100.0, layout, stats, fields, 4)
+    assert float(answer.levels[0].wrinkle_width) != float(x[-1])
+    image = _fit._fitted_map(fit.sim_key, answer.levels, layout)
+    np.testing.assert_allclose(answer.image, image, atol=1e-5)
+    assert float(answer.loss) == pytest.approx(float(_fit._loss(image, stats)), rel=1e-5)
+    kept = _refine(fit.sim_key, levels, 0.0, layout, stats, fields, 4)
+    assert float(kept.loss) == 0.0 and kept.image is None
+    assert float(kept.levels[0].wrinkle_width) == float(x[-1])
+    assert float(kept.levels[0].d) in np.asarray(layout.d_values)  # α_d snapped, as simulated
+
+
+def test_heldout_losses_are_one_agents_swarm_losses_with_each_key(fit, target, layout):
+    """:func:`_fit._heldout` scores one agent with each held-out key through the trial's swarm
+    loss (its compiled program), the agent in the first row and the other rows skipped: the
+    same losses as that agent alone with each key."""
+    stats = texture_stats(target)
+    low, high, cyclic = (np.asarray(a, np.float32) for a in _fit._bounds(NAMES, D_RANGE, {}))
+    search = (low, high, cyclic, swarm_settings(3, batched=True))
+    params = np.asarray(fit.swarm.params)
+    heldout = _fit._heldout(_SwarmLoss(fit.sim_key, stats, TRUE, layout, NAMES), params,
+                            HELDOUT, search)  # fmt: skip
+    expected = [
+        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in HELDOUT
+    ]
+    np.testing.assert_allclose(heldout, expected, rtol=1e-5)
 
 
 def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layout, monkeypatch):
@@ -150,15 +166,17 @@ def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layo
     levels, refined = _levels_from(x, names, TRUE), []
     for bounds in ((0.1, 0.59), (0.3, 0.4)):
         fields = _drawing_fields(names, *_fit._bounds(names, D_RANGE, {names[-1]: bounds})[:2])
-        args = (layout, texture_stats(target), fields, 4, HELDOUT)
+        args = (layout, texture_stats(target), fields, 4)
         refined.append(float(_refine(fit.sim_key, levels, 100.0, *args).levels[0].wrinkle_width))
     assert refined[0] < 0.2 and refined[1] == pytest.approx(0.3, abs=1e-3), refined
 
 
-def test_refinement_compiles_once_while_the_swarm_runs(target, caplog):
+def test_refinement_compiles_once_while_the_swarm_runs(target, layout, caplog):
     """The refinement's program is compiled ahead, in a background thread, for the types of the
     answer the swarm will give: the fit then finds it compiled (one compile, not in the main
-    thread)."""
+    thread). The answer's map comes from it (no drawing compiled besides, unless the answer is
+    an unrefined start), and its held-out losses are the refined answer's swarm losses with the
+    fit's held-out keys."""
     names = (*NAMES, "1.wrinkle_width")
     small = dict(SMALL, n_agents=3, n_epochs=1)
     # compiled here (not read from the persistent cache), each compile logged
@@ -179,6 +197,14 @@ def test_refinement_compiles_once_while_the_swarm_runs(target, caplog):
     assert float(fit.loss) <= float(fit.swarm_loss) and not fit.interrupted
     assert len(fit.refined_losses) == 3 and float(fit.loss) == float(min(fit.refined_losses))
     assert float(fit.refined_losses[0]) <= float(fit.swarm_loss)
+    drawn = [r for r in caplog.records if "XLA compilation of jit(_fitted_map)" in r.getMessage()]
+    assert not drawn or float(fit.loss) == float(fit.swarm_loss)
+    k_sim = jax.random.split(jax.random.key(1))[0]
+    keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), _fit.HELDOUT_KEYS)
+    answer = jnp.array([[getattr(fit.levels[0], n[2:]) for n in names]], jnp.float32)
+    stats = texture_stats(target)
+    expected = [eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, names))(answer)[0] for k in keys]
+    np.testing.assert_allclose(fit.heldout_losses, expected, rtol=1e-5)
 
 
 def test_paper_mode_keeps_another_trials_answer_with_its_own_key(target, monkeypatch):
@@ -467,9 +493,10 @@ def test_interrupt_keeps_the_best_so_far(target):
     assert fit.fitted.shape == (64, 64)
 
 
-def test_interrupt_while_refining_keeps_the_starts_refined_so_far(target, monkeypatch):
+def test_interrupt_while_refining_keeps_the_starts_refined_so_far(target, layout, monkeypatch):
     """Ctrl-C during the final refinement's second start: the fit reports the first start's
-    refined answer (not the swarm's unrefined one), interrupted."""
+    refined answer (not the swarm's unrefined one), interrupted, with its map (drawn anew when
+    the refinement kept the start)."""
     refined = []
 
     def refine(*args):
@@ -483,8 +510,10 @@ def test_interrupt_while_refining_keeps_the_starts_refined_so_far(target, monkey
     fit = fit_wrinkles(jax.random.key(1), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
                        n_trials=1, refine_steps=2, refine_starts=2, **small)  # fmt: skip
     assert fit.interrupted and len(fit.refined_losses) == 1
-    levels, loss, image, _ = refined[0]
+    levels, loss, image = refined[0]
     assert float(fit.loss) == float(loss) <= float(fit.swarm_loss)
+    if image is None:
+        image = _fit._fitted_map(fit.sim_key, levels, layout.merged().narrowed(0))
     np.testing.assert_array_equal(fit.fitted, image)
     assert float(fit.levels[0].wrinkle_width) == float(levels[0].wrinkle_width)
 

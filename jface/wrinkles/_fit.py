@@ -46,7 +46,7 @@ from jface._compilation import (
     write_arrays,
 )
 from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
-from jface.optim._pso import Swarm, swarm_epoch, swarm_settings, swarm_start
+from jface.optim._pso import Swarm, swarm_epoch, swarm_evaluate, swarm_settings, swarm_start
 from jface.optim._texture import _stats
 from jface.wrinkles._drawing import (
     BETA,
@@ -97,11 +97,10 @@ REFINE_STEPS = {"fast": 10, "paper": 30}
 #: takes the extra starts while they cost at most a tenth of its swarm's evaluations (a 256²
 #: exploratory fit of 40 evaluations spent 23 s on 4 starts, half its time warm).
 REFINE_STARTS = 4
-#: Simulation keys that score a refined answer besides its own (:attr:`WrinkleFit.heldout_losses`):
-#: each costs one simulation and drawing per refinement, polishes included (one swarm
-#: evaluation; a refinement of 10 BFGS steps costs about 70). The losses of one answer with
-#: other keys spread by 14-35 % of their mean (measured over 16 keys on `brick` and `gravel`
-#: fits), so 8 give their mean within about a tenth.
+#: Simulation keys that score a fit's answer besides its own (:attr:`WrinkleFit.heldout_losses`):
+#: each costs one swarm evaluation, once per fit (a refinement of 10 BFGS steps costs about 70).
+#: The losses of one answer with other keys spread by 14-35 % of their mean (measured over 16
+#: keys on `brick` and `gravel` fits), so 8 give their mean within about a tenth.
 HELDOUT_KEYS = 8
 #: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
 #: Judged after each rung's polish in full fits: there, 0.1 % ran a 256² `brick` crop's last
@@ -535,8 +534,8 @@ def _extremes(key, graphs, params, ends, ds, shape, n_samples, n_steps, bulge):
 def _simulate(key, levels: tuple[WrinkleParams, WrinkleParams], layout: _Layout):
     """Graphs and trail weights of both levels (α_d snapped to the layout's grid)."""
     k = jax.random.split(key, 2)
-    d, graphs = layout.select(levels[0].d)
-    levels = (_with(levels[0], {"d": d}), _with(levels[1], {"d": d / 2}))
+    graphs = layout.select(levels[0].d)[1]
+    levels = _snapped(levels, layout)
     sims = tuple(
         (g, simulate(kk, g, p, n_steps=layout.n_steps, n_samples=n))
         for kk, g, p, n in zip(k, graphs, levels, layout.n_samples, strict=True)
@@ -673,23 +672,24 @@ class _SwarmLoss(eqx.Module):
         ]
 
         def undrawable(levels):
-            return jnp.zeros(self.layout.size, jnp.float32), jnp.ones((), bool)
+            return jnp.float32(jnp.nan)
 
         def one(x):
             levels = _levels_from(x, self.names, self.base)
-            d = levels[0].d
-            # a non-finite α_d is undrawable; the branch also keeps one class a conditional,
-            # which draws an agent the same way whatever the number of agents in a share
-            which = jnp.where(jnp.isfinite(d), self.layout.size_class(d), len(classes))
-            image, bad = jax.lax.switch(which, [*classes, undrawable], levels)
-            return jnp.where(bad, jnp.nan, _loss(image, self.target))
+            # an agent with a non-finite entry is undrawable at no cost (a held-out score's
+            # unused rows); the branch also keeps one class a conditional, which draws an
+            # agent the same way whatever the number of agents in a share
+            drawable = jnp.all(jnp.isfinite(x))
+            which = jnp.where(drawable, self.layout.size_class(levels[0].d), len(classes))
+            return jax.lax.switch(which, [*classes, undrawable], levels)
 
         return jax.lax.map(one, xs)
 
     def _map(self, layout: _Layout, levels):
-        """The map of one agent and whether it was undrawable."""
+        """The loss of one agent (NaN where undrawable)."""
         sims, levels = _simulate(self.key, levels, layout)
-        return _draw_checked(self.key, sims, levels, layout)[:2]
+        image, bad = _draw_checked(self.key, sims, levels, layout)[:2]
+        return jnp.where(bad, jnp.nan, _loss(image, self.target))
 
 
 def _loss(image, target: TextureStats) -> Float[Array, ""]:
@@ -881,12 +881,19 @@ def fit_wrinkles(
     if refine_steps:
         like = _levels_from(jnp.asarray((low + high) / 2), names, base)  # the answer's types
         refine_args = (refining, target_stats, fields, (_REFINE_PASSES,) * 2, refine_steps)
-        like_start = jnp.float32(0)
-        ahead = compile_ahead(_refined, sim_keys[0], like, like_start, heldout_keys, *refine_args)
+        ahead = compile_ahead(_refined, sim_keys[0], like, *refine_args)
     # the fit's refinements by their starts, each solved once: a polish that gained nothing
     # comes back after the next rung when the swarm found nothing better, and as a start of the
-    # final refinement (a map each, one per polish and start)
+    # final refinement
     solved = {}
+    index = {name: i for i, name in enumerate(names)}
+
+    def refined_params(params, refined: _Refined) -> np.ndarray:
+        """``params`` with the drawing fields of a refinement's answer."""
+        params = np.array(params)
+        for lv, f, *_ in fields:
+            params[index[f"{lv + 1}.{f}"]] = float(getattr(refined.levels[lv], f))
+        return params
 
     def refine(sim_key, params, start):
         """:func:`_refine` of ``params`` with a trial's simulation key from its swarm loss
@@ -898,20 +905,16 @@ def fit_wrinkles(
                 ahead.join()
             levels = _levels_from(jnp.asarray(params), names, base)
             solved[name] = _refine(
-                sim_key, levels, start, refining, target_stats, fields, refine_steps, heldout_keys
+                sim_key, levels, start, refining, target_stats, fields, refine_steps
             )
         return solved[name]
 
     polish = None
     if _polishes(mode, refine_steps, settings.n_agents, n_epochs):
-        index = {name: i for i, name in enumerate(names)}
 
         def polish(sim_key, best, start):  # the refinement of a trial's best, as parameters
             refined = refine(sim_key, best, start)
-            params = np.array(best)
-            for lv, f, *_ in fields:
-                params[index[f"{lv + 1}.{f}"]] = float(getattr(refined.levels[lv], f))
-            return params, float(refined.loss)
+            return refined_params(best, refined), float(refined.loss)
 
     interrupted = False
     finished = list(range(n_trials))
@@ -925,28 +928,51 @@ def fit_wrinkles(
         interrupted = True
     swarm = _result(runs, low, high)
     epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
-    answers = []  # (trial, refined) of each start
+    answers = []  # (trial, parameters, refined) of each start
     if not interrupted:
         try:
             starts = _starts(runs, finished, low, high, refine_starts if refine_steps else 1)
             for t, params, start in starts:
-                answers.append((t, refine(sim_keys[t], params, start)))
+                answers.append((t, params, refine(sim_keys[t], params, start)))
         except KeyboardInterrupt:  # Ctrl-C while refining: the starts refined so far
             interrupted = True
-    if not answers:  # the swarm's answer as it is, unrefined (a compile may still be running)
-        sim_key = sim_keys[int(swarm.best_trial)]
-        levels = _levels_from(swarm.params, names, base)
-        kept = _refine(sim_key, levels, swarm.loss, refining, target_stats, (), 0, heldout_keys)
-        return WrinkleFit(
-            kept.levels, swarm.loss, swarm.loss, swarm, names, sim_key, kept.image, True, epochs,
-            answer_trial=int(swarm.best_trial), heldout_losses=kept.heldout,
-        )  # fmt: skip
-    t, answer = min(answers, key=lambda a: float(a[1].loss))  # the first of equals
-    refined_losses = jnp.stack([a.loss for _, a in answers])
+    refined_losses = jnp.stack([a.loss for *_, a in answers]) if answers else jnp.zeros(0)
+    if answers:
+        t, params, answer = min(answers, key=lambda a: float(a[2].loss))  # the first of equals
+        params = refined_params(params, answer)
+    else:  # the swarm's answer as it is, unrefined (a compile may still be running)
+        t, params = int(swarm.best_trial), swarm.params
+        levels = _snapped(_levels_from(params, names, base), refining)
+        answer = _Refined(levels, swarm.loss, None)
+    image = answer.image
+    if image is None:  # a start the refinement did not beat (or none refined): drawn here
+        image = _fitted_map(sim_keys[t], answer.levels, refining)
+    heldout = _heldout(runs[t].loss, params, heldout_keys, search)
     return WrinkleFit(
-        answer.levels, answer.loss, swarm.loss, swarm, names, sim_keys[t], answer.image,
-        interrupted, epochs, refined_losses, t, answer.heldout,
+        answer.levels, answer.loss, swarm.loss, swarm, names, sim_keys[t], image,
+        interrupted, epochs, refined_losses, t, heldout,
     )  # fmt: skip
+
+
+@functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
+def _fitted_map(sim_key, levels, layout: _Layout) -> Float[Array, "H W"]:
+    """The map of ``levels`` simulated and drawn with ``sim_key``."""
+    sims, levels = _simulate(sim_key, levels, layout)
+    return _draw(sim_key, sims, levels, layout)
+
+
+def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
+    """Losses of ``params`` (one agent, in the fit's units) simulated and drawn with each of
+    ``keys``: the trial's compiled swarm loss with another key, the agent in its first row and
+    the other rows undrawable (non-finite), which cost nothing."""
+    low, high, _, settings = search
+    x = np.full((settings.n_agents, low.shape[0]), np.nan, np.float32)
+    x[0] = (np.asarray(params) - low) / (high - low)
+    x = jnp.asarray(x)
+    return jnp.stack([
+        swarm_evaluate(eqx.tree_at(lambda f: f.key, loss, k), low, high, x, settings)[0][0]
+        for k in keys
+    ])  # fmt: skip
 
 
 def _agent_mesh(devices) -> Mesh | None:
@@ -1130,34 +1156,39 @@ def _drawing_fields(names, low, high) -> tuple[tuple[int, str, float, float], ..
 
 
 class _Refined(NamedTuple):
-    """A refinement's answer: its levels (α_d snapped to the grid), loss, map, and its losses
-    with the held-out simulation keys."""
+    """A refinement's answer: its levels (α_d snapped to the grid), its loss, and its map (None
+    when the answer is the start, whose map is drawn only where a fit reports it)."""
 
     levels: tuple[WrinkleParams, WrinkleParams]
     loss: Array
-    image: Array
-    heldout: Array
+    image: Array | None
 
 
-def _refine(sim_key, levels, start, layout, target_stats, fields, steps, heldout_keys):
+def _refine(sim_key, levels, start, layout, target_stats, fields, steps) -> _Refined:
     """BFGS on the drawing ``fields`` with the simulation result held fixed. ``start`` is the
     swarm's loss of ``levels``: the answer is kept unless the refinement beats it (a redraw of
-    the same parameters can differ from the batched swarm's loss in the last bit). The answer
-    is also simulated and drawn with each of ``heldout_keys``."""
-    steps = steps if fields else 0
-    passes = (_REFINE_PASSES,) * 2
+    the same parameters can differ from the batched swarm's loss in the last bit)."""
     start = jnp.asarray(start, jnp.float32)
+    if steps == 0 or not fields:
+        return _Refined(_snapped(levels, layout), start, None)
+    passes = (_REFINE_PASSES,) * 2
     while True:
-        drawn, fullest, images, losses = _refined(
-            sim_key, levels, start, heldout_keys, layout, target_stats, fields, passes, steps
+        fullest, answer, loss, image = _refined(
+            sim_key, levels, layout, target_stats, fields, passes, steps
         )
         need = tuple(max(p, _refine_passes(int(c))) for p, c in zip(passes, fullest, strict=True))
-        if need == passes or steps == 0:
+        if need == passes:
             break
         passes = need  # the start's fullest tile needs more (rare): solve again with enough
-    if steps == 0 or not bool(losses[1] < start):  # keep the swarm's answer unless beaten
-        return _Refined(drawn[0], start, images[0], losses[2:])
-    return _Refined(drawn[1], losses[1], images[1], losses[2:])
+    if not bool(loss < start):  # keep the swarm's answer unless beaten
+        return _Refined(_snapped(levels, layout), start, None)
+    return _Refined(answer, loss, image)
+
+
+def _snapped(levels, layout: _Layout):
+    """``levels`` with α_d at its grid value (level 2 at half of it), as simulated."""
+    d = layout.d_values[layout.index(levels[0].d)]
+    return _with(levels[0], {"d": d}), _with(levels[1], {"d": d / 2})
 
 
 #: The refinement's static drawing passes at least (512 primitives per tile), so that almost
@@ -1179,17 +1210,14 @@ def _refine_passes(fullest: int) -> int:
 
 
 @functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
-def _refined(sim_key, levels, start, heldout_keys, layout: _Layout, target_stats, fields, passes,
-             steps):  # fmt: skip
-    """One program for the whole refinement: the simulation of ``levels`` (α_d snapped), BFGS
-    over the logits of ``fields`` (static, each in its search range) with the drawing's
-    ``passes`` (static), and the map and loss (inf where undrawable) of the start and of the
-    answer, then of the one kept (the answer when its loss is below ``start``) simulated and
-    drawn with each of ``heldout_keys``: one compiled simulation and drawing in a scan (a
-    forward draw costs a third of the solve's compile time). Returns the start and the answer,
-    the start's fullest tile per level, the maps (start, answer, held out) and their losses.
-    ``steps == 0``: the answer is the start."""
+def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, steps):
+    """One program for a refinement: the simulation of ``levels`` (α_d snapped), the start's
+    fullest tile per level, and BFGS over the logits of ``fields`` (static, each in its search
+    range) with the drawing's ``passes`` (static). Returns that fullest tile, the answer, its
+    loss (inf where undrawable) and its map, both from the solve's last accepted step (no
+    other drawing to compile: held-out keys are scored by the swarm's program)."""
     sims, levels = _simulate(sim_key, levels, layout)
+    fullest = [jnp.max(bins.count) for *_, bins in _binned(sim_key, sims, levels, layout)]
 
     def unpack(z):
         changes: tuple[dict, dict] = ({}, {})
@@ -1200,36 +1228,14 @@ def _refined(sim_key, levels, start, heldout_keys, layout: _Layout, target_stats
     def loss(z, _):
         image, bad, _ = _draw_checked(sim_key, sims, unpack(z), layout, passes)
         # inf where undrawable: the line search backs off
-        return jnp.where(bad, jnp.inf, _loss(image, target_stats))
+        return jnp.where(bad, jnp.inf, _loss(image, target_stats)), image
 
     def logit(lv, f, lo, hi):
         u = jnp.clip((getattr(levels[lv], f) - lo) / (hi - lo), 1e-3, 1 - 1e-3)
         return jnp.log(u) - jnp.log1p(-u)
 
-    answer = levels
-    if steps:
-        z0 = jnp.stack([logit(*field) for field in fields]).astype(jnp.float32)
-        solver = optx.BFGS(rtol=1e-4, atol=1e-6)
-        sol = optx.minimise(loss, solver, z0, max_steps=steps, throw=False)
-        answer = unpack(sol.value)
-
-    def pick(which, a, b):
-        return jax.tree.map(lambda x, y: jnp.where(which, x, y), a, b)
-
-    def score(kept, item):  # the start, the answer, then the one kept with each held-out key
-        key, i = item
-        lv = pick(i == 1, answer, kept)
-        # the start and the answer have the simulation above (the drawing fields do not enter
-        # it; their α_d is snapped already); a held-out key simulates anew
-        drawn_sims, lv = jax.lax.cond(
-            i < 2, lambda lv: (sims, lv), lambda lv: _simulate(key, lv, layout), lv
-        )
-        image, bad, fullest = _draw_checked(key, drawn_sims, lv, layout)
-        scored = jnp.where(bad, jnp.inf, _loss(image, target_stats))
-        kept = pick(i == 1, pick(scored < start, answer, levels), kept)
-        return kept, (image, scored, jnp.stack(fullest))
-
-    keys = jnp.concatenate([jnp.stack([sim_key, sim_key]), heldout_keys])
-    items = (keys, jnp.arange(keys.shape[0]))
-    _, (images, losses, fullest) = jax.lax.scan(score, levels, items)
-    return (levels, answer), fullest[0], images, losses
+    z0 = jnp.stack([logit(*field) for field in fields]).astype(jnp.float32)
+    solver = optx.BFGS(rtol=1e-4, atol=1e-6)
+    sol = optx.minimise(loss, solver, z0, max_steps=steps, has_aux=True, throw=False)
+    # the final state holds the last accepted step's loss and map (``sol.aux`` lags a step)
+    return jnp.stack(fullest), unpack(sol.value), sol.state.f_info.f, sol.state.aux
