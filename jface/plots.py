@@ -135,11 +135,19 @@ def panel_grid(
         for i, row in enumerate(rows)
     ]
     heights = [max(p.shape[0] / p.shape[1] for p in row if p is not None) for row in panels]
+    barred = [
+        q not in ("relief", "image") and any(p is not None and p.ndim == 2 for p in row)
+        for q, row in zip(quantities, panels, strict=True)
+    ]
     figure = _figure(
         panel_inches * n_cols + 1.6 + 0.4 * (row_labels is not None),
         sum(panel_inches * h for h in heights) + 0.7 + 0.25 * (col_labels is not None),
     )
-    axes = figure.subplots(n_rows, n_cols, squeeze=False, gridspec_kw={"height_ratios": heights})
+    # the colour bars get a column of their own, so that the panels of rows with and without a
+    # bar line up
+    widths = [1.0] * n_cols + [0.06] * any(barred)
+    grid = {"height_ratios": heights, "width_ratios": widths}
+    axes = figure.subplots(n_rows, len(widths), squeeze=False, gridspec_kw=grid)
     for i, row in enumerate(panels):
         values = [p for p in row if p is not None and p.ndim == 2]
         norm = _norm(values, quantities[i], *limits[i], logs[i]) if values else None
@@ -165,10 +173,12 @@ def panel_grid(
                 ax.set_title(col_labels[j], fontsize=9)
             if j == 0 and row_labels is not None:
                 ax.set_ylabel(row_labels[i], fontsize=9)
-        if mappable is not None and quantities[i] not in ("relief", "image"):
-            bar = figure.colorbar(mappable, ax=list(axes[i]), shrink=0.9, pad=0.01)
+        if barred[i]:
+            bar = figure.colorbar(mappable, cax=axes[i, n_cols])
             bar.set_label(units[i] or quantities[i], fontsize=8)
             bar.ax.tick_params(labelsize=7)
+        elif any(barred):
+            axes[i, n_cols].set_axis_off()
     figure.suptitle(title, fontsize=11)
     return figure
 

@@ -74,6 +74,22 @@ def test_panel_grid_labels_rows_columns_and_units():
     assert norm.vmin == -norm.vmax == -1.0
 
 
+def test_panel_grid_lines_up_rows_with_and_without_a_colour_bar():
+    # a fit's figure: shaded relief (no bar) above displacement (a bar)
+    values = np.linspace(-1.0, 1.0, 64).reshape(8, 8)
+    figure = plots.panel_grid(
+        [[np.full((8, 8, 3), 0.5)] * 2, [values, values]],
+        title="t",
+        quantities=["relief", "displacement"],
+    )
+    figure.canvas.draw()
+    panels = [ax for ax in figure.axes if ax.images]  # a colour bar's axes hold no image
+    top, bottom = panels[:2], panels[2:]
+    for a, b in zip(top, bottom, strict=True):
+        pa, pb = a.get_position(), b.get_position()
+        assert pa.x0 == pytest.approx(pb.x0, abs=1e-6) and pa.width == pytest.approx(pb.width)
+
+
 def test_convergence_draws_one_labelled_line_per_trial_on_a_log_axis():
     history = np.array([[1.0, 0.5, 0.1], [2.0, 0.2, 0.05], [1.5, 1.0, np.inf]])
     figure = plots.convergence(history, title="Fit")
