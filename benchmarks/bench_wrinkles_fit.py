@@ -154,7 +154,7 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=3)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--d-levels", type=int, help="default: the mode's (16 fast, 32 paper)")
-    parser.add_argument("--refine-steps", type=int, help="default: the mode's (10 fast, 30 paper)")
+    parser.add_argument("--refine-steps", type=int, help="default: the mode's (30 in both)")
     parser.add_argument("--stages", action="store_true", help="the cost split of one evaluation")
     parser.add_argument("--save", type=Path, help="folder for the targets and the fits")
     args = parser.parse_args()

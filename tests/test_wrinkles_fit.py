@@ -326,13 +326,15 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     assert sum(epochs) <= fit_budget(10, 10, 3, refine_steps=0)[0] == 1 + 2 + 10
     # worked by hand: the defaults; either side of POLISH_FROM (rungs of 12 × 24 or 25 agents);
     # rungs of 2 with an odd rest; one trial; rungs that add up to more than n_epochs; the
-    # final refinement's extra starts (70 evaluations each) within a tenth of the evaluations:
-    # none in an exploratory fit of 40, one in a fit of 39 × 20 = 780
-    assert fit_budget() == (136, 12, 4) and fit_budget(24) == (136, 0, 4)
-    assert fit_budget(25) == (136, 12, 4)
-    assert fit_budget(150, 21, 3) == (27, 14, 4) and fit_budget(150, 20, 1) == (20, 10, 4)
+    # final refinement's extra starts (7 evaluations a BFGS step, 210 for the default 30)
+    # within a tenth of the evaluations: none in an exploratory fit of 40 nor in one of 39 × 20
+    # = 780 (one with 10 steps), one in 136 × 24 = 3,264
+    assert fit_budget() == (136, 12, 4) and fit_budget(24) == (136, 0, 2)
+    assert fit_budget(25) == (136, 12, 2) and fit_budget(50, refine_steps=10) == (136, 12, 4)
+    assert fit_budget(150, 21, 3) == (27, 14, 2) and fit_budget(150, 20, 1) == (20, 10, 2)
     assert fit_budget(10, 2, 16, refine_steps=0) == (30, 0, 1)
-    assert fit_budget(8, 5, 1) == (5, 0, 1) and fit_budget(20, 30, 3) == (39, 0, 2)
+    assert fit_budget(8, 5, 1) == (5, 0, 1) and fit_budget(20, 30, 3) == (39, 0, 1)
+    assert fit_budget(20, 30, 3, refine_steps=10) == (39, 0, 2)
     paper = fit_wrinkles(jax.random.key(1), target, mode="paper", **kwargs)
     assert paper.epochs_run == (10, 10, 10)
     assert fit_budget(10, 10, 3, mode="paper") == (30, 0, 1)

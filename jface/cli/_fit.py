@@ -89,7 +89,7 @@ def register(subparsers) -> None:
     parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
     parser.add_argument(
         "--refine-steps", type=int,
-        help="BFGS steps on the drawing parameters (0: none; default: 10, 30 with --paper)",
+        help="BFGS steps on the drawing parameters, at most (0: none; default: 30)",
     )  # fmt: skip
     parser.add_argument(
         "--d-levels", type=int,

@@ -87,9 +87,12 @@ D_RANGE = (0.02, 0.05)
 #: Number of α_d values whose pores and graphs are precomputed, per mode: building them is most
 #: of a fit's fixed cost; fast mode's 16 step α_d by 4–10 %, the paper mode's 32 by 2–5 %.
 D_LEVELS = {"fast": 16, "paper": 32}
-#: BFGS steps of the refinement, per mode: each costs about seven swarm evaluations (a gradient
-#: through the drawing); fast mode keeps the first 10, which give most of the gain.
-REFINE_STEPS = {"fast": 10, "paper": 30}
+#: BFGS steps of the refinement, per mode, at most (it stops earlier when converged): each costs
+#: about seven swarm evaluations (a gradient through the drawing). Fast mode took 10 until
+#: measured: with 30, its default fits of 256² crops (seed 0) reached 0.71x (`gravel`), 0.59x
+#: (`brick`) and 0.83x (a map drawn from known parameters) the paper mode's held-out loss,
+#: against 1.11x, 0.54x and 1.06x with 10, for 12-23 % more time.
+REFINE_STEPS = {"fast": 30, "paper": 30}
 #: Starts of the final refinement: the best answer of every trial that ran to its end (paper mode:
 #: all; fast mode: the race's winner), then that best trial's next personal bests, up to this many
 #: in all. The swarm's loss ranks answers poorly for what the refinement makes of them (on gravel,
@@ -98,7 +101,7 @@ REFINE_STEPS = {"fast": 10, "paper": 30}
 #: exploratory fit of 40 evaluations spent 23 s on 4 starts, half its time warm).
 REFINE_STARTS = 4
 #: Simulation keys that score a fit's answer besides its own (:attr:`WrinkleFit.heldout_losses`):
-#: each costs one swarm evaluation, once per fit (a refinement of 10 BFGS steps costs about 70).
+#: each costs one swarm evaluation, once per fit (a refinement of 30 BFGS steps up to 210).
 #: The losses of one answer with other keys spread by 14-35 % of their mean (measured over 16
 #: keys on `brick` and `gravel` fits), so 8 give their mean within about a tenth.
 HELDOUT_KEYS = 8
@@ -108,8 +111,8 @@ HELDOUT_KEYS = 8
 #: simulation keys), while `gravel`'s rungs gained 2.6 % or more until the last (seed 0).
 STALL_TOLERANCE, PATIENCE = 1e-2, 10
 #: Fast mode polishes every trial's best with the refinement after each rung of successive
-#: halving when a rung holds at least this many evaluations: one polish (10 BFGS steps) costs
-#: about 70 evaluations.
+#: halving when a rung holds at least this many evaluations: one polish (up to 30 BFGS steps)
+#: costs up to about 210 evaluations.
 POLISH_FROM = 300
 #: Swarms of fewer evaluations draw every agent with one program: the second size class saves
 #: about 0.06 s an evaluation but costs about 12 s of compile (256², two cores), so it repays
