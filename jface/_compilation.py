@@ -63,6 +63,30 @@ def compile_ahead(jitted: Callable, *args) -> threading.Thread:
     return thread
 
 
+#: Memory mappings past which :func:`spare_memory_mappings` drops JAX's compiled programs: each
+#: loaded program keeps some (a 256² wrinkle fit's two about 4,300), and past Linux's
+#: ``vm.max_map_count`` (65,530 by default) the next compile or read from the persistent cache
+#: crashes the interpreter (the test suite's wrinkle fits reached it in one process).
+MAPPINGS_LIMIT = 40_000
+
+
+def spare_memory_mappings(limit: int | None = None) -> bool:
+    """Drop JAX's compiled programs (``jax.clear_caches``) when this process holds more than
+    ``limit`` (default :data:`MAPPINGS_LIMIT`) memory mappings, so that a long run that compiles
+    program after program (fits of patches of many sizes) does not crash. A dropped program is
+    compiled again when next called, or read back from the persistent compilation cache. Only
+    where ``/proc/self/maps`` exists (Linux); elsewhere nothing. Returns whether they were
+    dropped."""
+    try:
+        count = Path("/proc/self/maps").read_bytes().count(b"\n")
+    except OSError:
+        return False
+    if count <= (MAPPINGS_LIMIT if limit is None else limit):
+        return False
+    jax.clear_caches()
+    return True
+
+
 def kept_arrays(
     what: str,
     settings: tuple,

@@ -209,9 +209,11 @@ def lines(
     logx: bool = False,
     logy: bool = False,
     markers: bool = False,
+    points: dict[str, tuple[float, float]] | None = None,
 ) -> Figure:
     """A line plot: one line per entry of ``series`` (label → y values over ``x``), with a
-    legend when there is more than one, labelled axes and optional log scales.
+    legend when there is more than one, labelled axes and optional log scales. ``points``:
+    single labelled points (label → ``(x, y)``, e.g. a final answer) drawn as stars.
 
     Raises:
         ValueError: no series, a series whose length differs from ``x``'s, non-positive values
@@ -229,6 +231,9 @@ def lines(
         if logy and np.any(y[np.isfinite(y)] <= 0):
             raise ValueError(f"series {label!r} must be positive on a log y axis")
         ax.plot(x, y, label=label, marker="o" if markers else None, markersize=3, linewidth=1.4)
+    points = dict(points or {})
+    for label, (px, py) in points.items():
+        ax.plot([px], [py], label=label, marker="*", markersize=11, linestyle="none", color="k")
     if logx:
         ax.set_xscale("log")
         _plain_within_a_decade(ax.xaxis, ax.get_xlim())
@@ -238,7 +243,7 @@ def lines(
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.grid(True, which="major", alpha=0.3)
-    if len(series) > 1:
+    if len(series) + len(points) > 1:
         ax.legend(fontsize=8, frameon=False)
     figure.suptitle(title, fontsize=11)
     return figure
@@ -439,7 +444,12 @@ def band_statistics(std: Any, n_orientations: int, *, title: str, units: str = "
 
 
 def convergence(
-    history: Any, *, title: str, ylabel: str = "best loss so far", xlabel: str = "epoch"
+    history: Any,
+    *,
+    title: str,
+    ylabel: str = "best loss so far",
+    xlabel: str = "epoch",
+    answer: tuple[str, float] | None = None,
 ) -> Figure:
     """Best-so-far loss per epoch of each trial of an optimiser, on a log axis when the losses
     are positive: one labelled line per trial.
@@ -447,6 +457,9 @@ def convergence(
     Args:
         history: ``(trials, epochs)`` best-so-far losses (non-finite entries are left out);
             column 0 is drawn at epoch 0 (the initial population).
+        answer: ``(label, loss)`` of the final answer when it is not the history's last best
+            (e.g. refined after the search), drawn as a star at the last epoch (left out when
+            not finite).
     """
     history = np.asarray(history, np.float64)
     if history.ndim == 1:
@@ -457,4 +470,8 @@ def convergence(
     logy = bool(finite.size) and bool(np.all(finite > 0))
     epochs = np.arange(history.shape[1], dtype=np.float64)
     series = {f"trial {i + 1}": np.where(np.isfinite(h), h, np.nan) for i, h in enumerate(history)}
-    return lines(epochs, series, title=title, xlabel=xlabel, ylabel=ylabel, logy=logy)
+    points = {}
+    if answer is not None and np.isfinite(answer[1]) and (answer[1] > 0 or not logy):
+        points[answer[0]] = (epochs[-1], float(answer[1]))
+    return lines(epochs, series, title=title, xlabel=xlabel, ylabel=ylabel, logy=logy,
+                 points=points)  # fmt: skip

@@ -22,7 +22,7 @@ import jax
 import numpy as np
 import pytest
 
-from jface._compilation import keep_compiled_programs
+from jface._compilation import keep_compiled_programs, spare_memory_mappings
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
@@ -221,15 +221,11 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True)
 def _release_compiled_code():
     """Drop JAX's compiled executables after a test once the process holds many memory
-    mappings: each executable keeps some (a small wrinkle fit's programs about 4,300), and past
-    Linux's vm.max_map_count (65,530 by default) the next compilation or read from the
-    persistent cache crashes the interpreter, which one module of fits reached on its own.
-    Below that, tests keep sharing compilations (a cleared program is read back from the
-    persistent cache)."""
+    mappings (:func:`jface._compilation.spare_memory_mappings`): tests compile far more
+    programs in one process than any run of jface. Below that, tests keep sharing compilations
+    (a cleared program is read back from the persistent cache)."""
     yield
-    maps = Path("/proc/self/maps")
-    if maps.exists() and maps.read_text().count("\n") > 40_000:
-        jax.clear_caches()
+    spare_memory_mappings()
 
 
 @pytest.fixture

@@ -100,6 +100,19 @@ def test_convergence_draws_one_labelled_line_per_trial_on_a_log_axis():
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["trial 1", "trial 2", "trial 3"]
 
 
+def test_convergence_marks_an_answer_refined_after_the_search():
+    history = np.array([[1.0, 0.5, 0.4]])
+    figure = plots.convergence(history, title="Fit", answer=("refined", 0.05))
+    ax = figure.axes[0]
+    star = ax.get_lines()[-1]
+    assert star.get_label() == "refined" and star.get_marker() == "*"
+    assert list(star.get_xdata()) == [2.0] and list(star.get_ydata()) == [0.05]
+    assert ax.get_ylim()[0] <= 0.05  # on the axis
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["trial 1", "refined"]
+    bare = plots.convergence(history, title="Fit", answer=("refined", np.inf)).axes[0]
+    assert [line.get_label() for line in bare.get_lines()] == ["trial 1"]
+
+
 def test_a_log_axis_within_a_decade_reads_plain_numbers():
     """A short fit's losses span less than a decade: its tick labels are plain numbers, not
     ``1.716×10⁰``; a history over decades keeps the powers of ten."""

@@ -5,6 +5,7 @@ the fitted pipeline compiles once per module."""
 import inspect
 import json
 import logging
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -476,6 +477,19 @@ def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
     for epoch, loss in gained:
         assert history[epoch] == pytest.approx(loss, rel=1e-6)
     assert float(fit.swarm_loss) <= min(after for *_, after in winner) * (1 + 1e-6)
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="Linux's memory mappings")
+def test_a_fit_drops_compiled_programs_near_the_memory_mapping_limit(target, monkeypatch):
+    """Past vm.max_map_count the next compile crashes the interpreter: a fit drops JAX's
+    compiled programs first once the process holds more than MAPPINGS_LIMIT mappings."""
+    dropped = []
+    monkeypatch.setattr(jax, "clear_caches", lambda: dropped.append(True))
+    assert not _compilation.spare_memory_mappings(limit=10**9) and not dropped
+    monkeypatch.setattr(_compilation, "MAPPINGS_LIMIT", 10)  # any process holds more
+    fit_wrinkles(jax.random.key(0), target, names=NAMES, base=TRUE, n_trials=1, refine_steps=0,
+                 **dict(SMALL, n_agents=3, n_epochs=1))  # fmt: skip
+    assert dropped == [True]
 
 
 def test_interrupt_keeps_the_best_so_far(target):

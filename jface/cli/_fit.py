@@ -410,6 +410,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
         history,
         title="Wrinkle fit: particle swarm, best loss per trial",
         xlabel="epoch (0: the initial swarm)",
+        answer=("the fit's answer", float(fit.loss)),
     )
     write_figure(f"{stem}_convergence.png", figure, metadata=meta)
     # the loss compares zero-mean, unit-variance maps: so does the figure (a measured patch in

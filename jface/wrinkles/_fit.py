@@ -43,6 +43,7 @@ from jface._compilation import (
     kept_arrays,
     read_shipped,
     shipped_arrays,
+    spare_memory_mappings,
     write_arrays,
 )
 from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
@@ -863,6 +864,8 @@ def fit_wrinkles(
     refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
     k_sim, k_swarm = jax.random.split(key)
     heldout_keys = jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), HELDOUT_KEYS)
+    # each new patch size compiles programs of its own: a process fitting many must not crash
+    spare_memory_mappings()
     layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels)
     whole = layout.merged()
     if settings.n_agents * (n_epochs + 1) * n_trials < SPLIT_FROM:
