@@ -92,7 +92,8 @@ D_LEVELS = {"fast": 16, "paper": 32}
 #: about seven swarm evaluations (a gradient through the drawing). Fast mode took 10 until
 #: measured: with 30, its default fits of 256² crops (seed 0) reached 0.71x (`gravel`), 0.59x
 #: (`brick`) and 0.83x (a map drawn from known parameters) the paper mode's held-out loss,
-#: against 1.11x, 0.54x and 1.06x with 10, for 12-23 % more time.
+#: against 1.11x, 0.54x and 1.06x with 10, for 12-23 % more time; with seed 1 `brick` gained
+#: too and `gravel` lost (1.17x against 1.00x): the held-out loss fell in 3 of 5 such pairs.
 REFINE_STEPS = {"fast": 30, "paper": 30}
 #: Starts of the final refinement: the best answer of every trial that ran to its end (paper mode:
 #: all; fast mode: the race's winner), then that best trial's next personal bests, up to this many
