@@ -11,6 +11,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 from conftest import TINY_FIT
 
@@ -22,6 +23,7 @@ from jface.optim import texture_stats
 from jface.optim._pso import Swarm, swarm_settings
 from jface.wrinkles import WrinkleParams, _fit, fit_budget, fit_wrinkles
 from jface.wrinkles._fit import (
+    _bfgs,
     _draw,
     _drawing_fields,
     _layout,
@@ -154,6 +156,43 @@ def test_heldout_losses_are_one_agents_swarm_losses_with_each_key(fit, target, l
         eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in HELDOUT
     ]
     np.testing.assert_allclose(heldout, expected, rtol=1e-5)
+
+
+def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_after_backtracks_in_a_row():
+    """The refinement's solve is optimistix's BFGS, step for step (the same answer as
+    ``optimistix.minimise`` on a smooth loss), and it stops once the line search has halved a
+    step ``REFINE_BACKTRACKS`` times in a row: on a loss whose gradient points uphill every step
+    after the first is a backtrack, and optimistix's own loop would run all of them."""
+
+    def smooth(z, _):
+        scales = jnp.arange(1, 5, dtype=jnp.float32)
+        return jnp.sum((z - 1.0) ** 2 * scales) + 0.1 * jnp.sum(z**4), 2 * z
+
+    z0 = jnp.array([0.3, -0.5, 2.0, 0.0], jnp.float32)
+    for steps in (3, 40):
+        solver = optx.BFGS(rtol=1e-4, atol=1e-6)
+        sol = optx.minimise(smooth, solver, z0, max_steps=steps, has_aux=True, throw=False)
+        z, value, aux = jax.jit(_bfgs, static_argnums=(0, 2))(smooth, z0, steps)
+        np.testing.assert_array_equal(z, sol.value)
+        np.testing.assert_array_equal(aux, sol.state.aux)
+        assert float(value) == float(sol.state.f_info.f)
+    assert float(value) < float(smooth(z0, None)[0]) / 10
+
+    @jax.custom_jvp
+    def uphill(z):
+        return jnp.sum(z**2)
+
+    uphill.defjvp(lambda z, t: (uphill(z[0]), -2 * jnp.sum(z[0] * t[0])))
+    calls = []
+
+    def lying(z, _):
+        jax.debug.callback(lambda: calls.append(1))
+        return uphill(z), None
+
+    z, value, _ = _bfgs(lying, z0, 100)
+    np.testing.assert_array_equal(z, z0)
+    # the start, then the backtracks
+    assert len(calls) == 1 + _fit.REFINE_BACKTRACKS and float(value) == float(uphill(z0))
 
 
 def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layout, monkeypatch):

@@ -1242,7 +1242,36 @@ def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, ste
         return jnp.log(u) - jnp.log1p(-u)
 
     z0 = jnp.stack([logit(*field) for field in fields]).astype(jnp.float32)
-    solver = optx.BFGS(rtol=1e-4, atol=1e-6)
-    sol = optx.minimise(loss, solver, z0, max_steps=steps, has_aux=True, throw=False)
-    # the final state holds the last accepted step's loss and map (``sol.aux`` lags a step)
-    return jnp.stack(fullest), unpack(sol.value), sol.state.f_info.f, sol.state.aux
+    z, value, image = _bfgs(loss, z0, steps)
+    return jnp.stack(fullest), unpack(z), value, image
+
+
+#: The refinement stops once its line search has halved a step this many times in a row: the
+#: gradient then no longer predicts the loss (where a primitive's coverage or a bin changes), and
+#: smaller steps almost never gain.
+REFINE_BACKTRACKS = 6
+
+
+def _bfgs(loss, z0, steps):
+    """``optimistix.minimise`` with BFGS of ``loss(z, None) → (value, aux)`` from ``z0`` for up to
+    ``steps`` steps (each one evaluation; the same steps), which stops as well after
+    :data:`REFINE_BACKTRACKS` backtracks in a row. Returns the last accepted ``z``, its value
+    and its aux."""
+    solver, tags = optx.BFGS(rtol=1e-4, atol=1e-6), frozenset()
+    f_struct, aux_struct = jax.eval_shape(loss, z0, None)
+    state = solver.init(loss, z0, None, {}, f_struct, aux_struct, tags)
+
+    def going(carry):
+        i, z, state = carry
+        done, _ = solver.terminate(loss, z, None, {}, state, tags)
+        stuck = state.search_state.step_size <= 0.5**REFINE_BACKTRACKS
+        return (i < steps) & ~done & ~stuck
+
+    def step(carry):
+        i, z, state = carry
+        z, state, _ = solver.step(loss, z, None, {}, state, tags)
+        return i + 1, z, state
+
+    _, z, state = jax.lax.while_loop(going, step, (0, z0, state))
+    # the state holds the last accepted step's value and aux (the step's own aux lags a step)
+    return z, state.f_info.f, state.aux
