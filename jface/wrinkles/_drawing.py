@@ -14,9 +14,11 @@ The rasteriser bins primitives to square screen tiles (each primitive to the at 
 evaluates each tile's pixels against its primitives in ``passes`` chunks of ``capacity`` with the
 blend accumulated additively (as in the paper's three-channel framebuffer, with a running maximum
 for float32 range), so any resolution works with memory bounded by the tile batch. Each tile
-batch draws the passes its fullest tile needs; a static bound on them (``passes``) keeps the map
-reverse-differentiable (the passes beyond the need are skipped), ``passes=None`` in
-:func:`render` does without one (no gradients).
+batch draws the passes its fullest tile needs, up to a static bound (``passes``; ``passes=None``
+in :func:`render` does without one). The map is reverse-differentiable in the primitives by a
+gradient of its own, which recomputes each pass's fragments and weights each by its share of
+Eq. 10's log-sum-exp: reverse-mode through the passes' running sums cost about four forward
+draws, this about two.
 """
 
 from __future__ import annotations
@@ -423,67 +425,157 @@ def _blend(acc: _Acc, beta, n_hat):
     )
 
 
+class _Tiling(NamedTuple):
+    """Settings of :func:`_render_tiles` (see :class:`DrawOptions`); β and N̂ are None where
+    they are passed as arrays."""
+
+    shape: tuple[int, int]
+    tile: int
+    capacity: int
+    passes: int | None
+    bulge: bool
+    periodic: bool
+    beta: float
+    n_hat: int
+
+
 def _render_tiles(
     prims, bins, tile_ids, shape, *, tile, capacity, passes, bulge, periodic, beta, n_hat
 ):
     """Blended displacement (Eq. 11) of the given tiles, ``(len(tile_ids), tile, tile)``.
 
     The tiles go in batches (about 1 Mi fragments a pass), and a batch takes the passes its
-    fullest tile needs: a ``while_loop`` (``passes=None``), or up to a static ``passes`` in a
-    ``scan`` that skips the passes beyond (``lax.cond``), which keeps the map
-    reverse-differentiable at the cost of the passes drawn, not of the bound.
+    fullest tile needs (at most ``passes``, None: no bound). Reverse-differentiable in the
+    primitives by a gradient of its own (:func:`_tiles_backward`), which costs the passes
+    drawn.
     """
-    gx = -(-shape[1] // tile)
-    h, w = shape
-    offs = jnp.arange(tile, dtype=jnp.float32)
-
-    def pixels(tid):
-        ty, tx = tid // gx, tid % gx
-        ys = ((ty * tile).astype(jnp.float32) + offs + 0.5) / h
-        xs = ((tx * tile).astype(jnp.float32) + offs + 0.5) / w
-        return jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
-
-    def one_pass(acc, q, count, start, c):  # primitives c·capacity… of one tile
-        slot = c * capacity + jnp.arange(capacity, dtype=jnp.int32)
-        idx = bins.order[jnp.minimum(start + slot, bins.order.shape[0] - 1)]
-        chunk = jax.tree.map(lambda a: a[idx], prims)
-        chunk = chunk._replace(valid=chunk.valid & (slot < count))
-        s, covered = _fragments(chunk, q, periodic, bulge)
-        return _accumulate(acc, s, covered, beta)
-
-    def batch(tids):
-        q, count, start = jax.vmap(pixels)(tids), bins.count[tids], bins.start[tids]
-        fullest = jnp.max(count)
-
-        def drawn(c, acc):  # pass c of every tile of the batch
-            return jax.vmap(one_pass, (0, 0, 0, 0, None))(acc, q, count, start, c)
-
-        init = _Acc(*[jnp.zeros((tids.shape[0], tile * tile), jnp.float32)] * 7)
-        if passes is None:
-            _, acc = lax.while_loop(
-                lambda st: st[0] * capacity < fullest,
-                lambda st: (st[0] + 1, drawn(*st)),
-                (jnp.int32(0), init),
-            )
-        else:  # the gradient recomputes each pass's fragments rather than keeping them all
-
-            def body(acc, c):
-                skip = c * capacity >= fullest
-                # checkpointed, the drawing branch's residuals are its inputs alone: the cond
-                # fills the residuals of the branch not taken with zeros, so a skipped pass
-                # would otherwise cost the zeros of every pass's fragments in the gradient
-                draw = jax.checkpoint(lambda a: drawn(c, a))
-                return lax.cond(skip, lambda a: a, draw, acc), None
-
-            acc, _ = lax.scan(jax.checkpoint(body), init, jnp.arange(passes, dtype=jnp.int32))
-        return jax.vmap(lambda a: _blend(a, beta, n_hat))(acc).reshape(-1, tile, tile)
-
     n = tile_ids.shape[0]
     batches = -(-n // max(1, (1 << 20) // (tile * tile * capacity)))
     size = -(-n // batches)  # even batches: fewer than one tile a batch repeats the last tile
     padded = batches * size
     ids = jnp.concatenate([tile_ids, jnp.broadcast_to(tile_ids[-1:], (padded - n,))])
-    return lax.map(batch, ids.reshape(-1, size)).reshape(padded, tile, tile)[:n]
+    ids = ids.reshape(-1, size)
+    static = _Tiling(tuple(shape), tile, capacity, passes, bulge, periodic, None, None)
+    # β and N̂ are arrays in ``draw`` (traced: one compile for all)
+    blended = _tiles_vjp(static, (beta, n_hat), prims._replace(valid=None), prims.valid, bins, ids)
+    return blended.reshape(padded, tile, tile)[:n]
+
+
+def _tile_pixels(cfg: _Tiling, tid):
+    """UV centres ``(tile², 2)`` of the pixels of tile ``tid``."""
+    gx = -(-cfg.shape[1] // cfg.tile)
+    h, w = cfg.shape
+    offs = jnp.arange(cfg.tile, dtype=jnp.float32)
+    ys = ((tid // gx * cfg.tile).astype(jnp.float32) + offs + 0.5) / h
+    xs = ((tid % gx * cfg.tile).astype(jnp.float32) + offs + 0.5) / w
+    return jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+
+
+def _pass_chunk(cfg: _Tiling, prims, bins, count, start, c):
+    """The primitives ``c·capacity…`` of one tile (slots past its count invalid) and their
+    indices."""
+    slot = c * cfg.capacity + jnp.arange(cfg.capacity, dtype=jnp.int32)
+    idx = bins.order[jnp.minimum(start + slot, bins.order.shape[0] - 1)]
+    chunk = jax.tree.map(lambda a: a[idx], prims)
+    return chunk._replace(valid=chunk.valid & (slot < count)), idx
+
+
+def _over_passes(cfg: _Tiling, count, body, init):
+    """``body(c, carry)`` for the passes ``c`` that a batch of tiles holding ``count``
+    primitives needs (at most ``cfg.passes``)."""
+    need = jnp.max(count)
+    if cfg.passes is not None:
+        need = jnp.minimum(need, cfg.passes * cfg.capacity)
+    _, out = lax.while_loop(
+        lambda st: st[0] * cfg.capacity < need,
+        lambda st: (st[0] + 1, body(*st)),
+        (jnp.int32(0), init),
+    )
+    return out
+
+
+def _accumulated(cfg: _Tiling, prims, bins, tids) -> _Acc:
+    """Eq. 10 sums of a batch of tiles over all their fragments."""
+    q = jax.vmap(lambda t: _tile_pixels(cfg, t))(tids)
+    count, start = bins.count[tids], bins.start[tids]
+
+    def one_pass(acc, q, count, start, c):
+        chunk, _ = _pass_chunk(cfg, prims, bins, count, start, c)
+        s, covered = _fragments(chunk, q, cfg.periodic, cfg.bulge)
+        return _accumulate(acc, s, covered, cfg.beta)
+
+    def drawn(c, acc):  # pass c of every tile of the batch
+        return jax.vmap(one_pass, (0, 0, 0, 0, None))(acc, q, count, start, c)
+
+    init = _Acc(*[jnp.zeros((tids.shape[0], cfg.tile**2), jnp.float32)] * 7)
+    return _over_passes(cfg, count, drawn, init)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _tiles_vjp(static: _Tiling, blend, floats, valid, bins, ids):
+    """Blended tiles of the batches ``ids``; ``static``: the settings but β and N̂, which are
+    ``blend``; ``floats``: the primitives without ``valid``."""
+    return _tiles_forward(static, blend, floats, valid, bins, ids)[0]
+
+
+def _tiles_forward(static: _Tiling, blend, floats, valid, bins, ids):
+    cfg, prims = static._replace(beta=blend[0], n_hat=blend[1]), floats._replace(valid=valid)
+    acc = lax.map(lambda t: _accumulated(cfg, prims, bins, t), ids)
+    return _blend(acc, *blend), (blend, floats, valid, bins, ids, acc)
+
+
+def _tiles_backward(static: _Tiling, residuals, g):
+    """The gradient of the blend in the primitives, pass by pass: Eq. 10 is a log-sum-exp per
+    side, so a fragment's share of its pixel's gradient is its softmax weight on its side (its
+    running maximum cancels). Each pass recomputes its fragments and keeps only their
+    primitives' gradients."""
+    blend, floats, valid, bins, ids, accs = residuals
+    cfg, prims = static._replace(beta=blend[0], n_hat=blend[1]), floats._replace(valid=valid)
+    beta = cfg.beta
+
+    def batch(total, xs):
+        tids, acc, g = xs
+        g = g.reshape(tids.shape[0], -1)
+        n_hat = jnp.maximum(jnp.asarray(cfg.n_hat, jnp.float32), acc.n)
+
+        def weight(m, s_side, n_side):  # g over Eq. 10's sum (its zeros and padding too)
+            return g / (s_side + (n_hat - n_side) * jnp.exp(-beta * m))
+
+        w_b = weight(acc.m_bulge, acc.s_bulge, acc.n_bulge)
+        w_v = weight(acc.m_valley, acc.s_valley, acc.n_valley)
+        q = jax.vmap(lambda t: _tile_pixels(cfg, t))(tids)
+        count, start = bins.count[tids], bins.start[tids]
+
+        def one_tile(q, count, start, w_b, w_v, m_b, m_v, c):
+            chunk, idx = _pass_chunk(cfg, prims, bins, count, start, c)
+
+            def frag(fl):
+                return _fragments(fl._replace(valid=chunk.valid), q, cfg.periodic, cfg.bulge)
+
+            s, vjp, covered = jax.vjp(frag, chunk._replace(valid=None), has_aux=True)
+            # the softmax weights: exponents ≤ 0 on each fragment's own side
+            bulge = jnp.exp(beta * (s - m_b[:, None])) * w_b[:, None]
+            valley = jnp.exp(beta * (-s - m_v[:, None])) * w_v[:, None]
+            ds = jnp.where(covered & (s > 0), bulge, jnp.where(covered & (s < 0), valley, 0.0))
+            return vjp(ds)[0], idx
+
+        def one_pass(c, total):
+            cts, idx = jax.vmap(one_tile, (0, 0, 0, 0, 0, 0, 0, None))(
+                q, count, start, w_b, w_v, acc.m_bulge, acc.m_valley, c
+            )
+            flat = idx.reshape(-1)
+            return jax.tree.map(
+                lambda t, d: t.at[flat].add(d.reshape(-1, *d.shape[2:])), total, cts
+            )
+
+        return _over_passes(cfg, count, one_pass, total), None
+
+    zero = jax.tree.map(jnp.zeros_like, floats)
+    total, _ = lax.scan(batch, zero, (ids, accs, g))
+    return None, total, None, None, None
+
+
+_tiles_vjp.defvjp(_tiles_forward, _tiles_backward)
 
 
 def _pixel_uv(shape, rows):
@@ -712,7 +804,7 @@ def _draw_flagged(key, prims, params, shape, opts, periodic):
 
 def render(key, prims, bins, params, shape, opts: DrawOptions, periodic) -> Float[Array, "H W"]:
     """The finished map of binned primitives (no checks; ``opts.passes=None``: each tile batch
-    takes as many passes as its fullest tile needs, not reverse-differentiable)."""
+    takes as many passes as its fullest tile needs, without a bound)."""
     gy = -(-shape[0] // opts.tile)
     return _tile_rows(key, prims, bins, params, shape, opts, periodic, 0, gy)[: shape[0]]
 

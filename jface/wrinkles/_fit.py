@@ -563,8 +563,7 @@ def _draw_checked(
     (primitive, tile) pairs than the bins hold, which would leave the map incomplete. Such a
     level is drawn without primitives and flagged, so its loss becomes NaN, which the swarm
     contains and counts. ``passes=None`` draws every tile with as many passes as it needs (the
-    swarm: fast, no gradients); static passes keep the map differentiable (the refinement), and
-    a tile holding more is flagged too.
+    swarm); static passes (the refinement) bound them, and a tile holding more is flagged too.
     """
     out, bad, fullest = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool), []
     for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout)):
@@ -1200,10 +1199,8 @@ def _snapped(levels, layout: _Layout):
 
 #: The refinement's static drawing passes at least (512 primitives per tile), so that almost
 #: every answer shares one compiled refinement (with passes from each answer's fullest tile, a
-#: fit of another patch mostly compiled it again, 35 s). The drawing skips the passes beyond a
-#: tile batch's fullest tile, in its gradient too, so the bound costs memory (the gradient keeps
-#: every pass's accumulators: about 60 MB a level at 256²), not time: 10 BFGS steps from one 256²
-#: start take 3.8 s with 4 passes and 4.0 s with 32 (two cores).
+#: fit of another patch mostly compiled it again, 35 s). The drawing and its gradient stop at a
+#: tile batch's fullest tile, so the bound costs nothing: it only limits what a tile may hold.
 _REFINE_PASSES = 32
 
 
