@@ -471,6 +471,11 @@ def _tile_pixels(cfg: _Tiling, tid):
     return jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
 
 
+def _batch(cfg: _Tiling, bins, tids):
+    """Pixel centres ``(tiles, tile², 2)``, primitive counts and bin starts of tiles ``tids``."""
+    return jax.vmap(lambda t: _tile_pixels(cfg, t))(tids), bins.count[tids], bins.start[tids]
+
+
 def _pass_chunk(cfg: _Tiling, prims, bins, count, start, c):
     """The primitives ``c·capacity…`` of one tile (slots past its count invalid) and their
     indices."""
@@ -496,8 +501,7 @@ def _over_passes(cfg: _Tiling, count, body, init):
 
 def _accumulated(cfg: _Tiling, prims, bins, tids) -> _Acc:
     """Eq. 10 sums of a batch of tiles over all their fragments."""
-    q = jax.vmap(lambda t: _tile_pixels(cfg, t))(tids)
-    count, start = bins.count[tids], bins.start[tids]
+    q, count, start = _batch(cfg, bins, tids)
 
     def one_pass(acc, q, count, start, c):
         chunk, _ = _pass_chunk(cfg, prims, bins, count, start, c)
@@ -518,8 +522,13 @@ def _tiles_vjp(static: _Tiling, blend, floats, valid, bins, ids):
     return _tiles_forward(static, blend, floats, valid, bins, ids)[0]
 
 
+def _joined(static: _Tiling, blend, floats, valid):
+    """The settings and primitives that :func:`_tiles_vjp` takes apart."""
+    return static._replace(beta=blend[0], n_hat=blend[1]), floats._replace(valid=valid)
+
+
 def _tiles_forward(static: _Tiling, blend, floats, valid, bins, ids):
-    cfg, prims = static._replace(beta=blend[0], n_hat=blend[1]), floats._replace(valid=valid)
+    cfg, prims = _joined(static, blend, floats, valid)
     acc = lax.map(lambda t: _accumulated(cfg, prims, bins, t), ids)
     return _blend(acc, *blend), (blend, floats, valid, bins, ids, acc)
 
@@ -530,7 +539,7 @@ def _tiles_backward(static: _Tiling, residuals, g):
     running maximum cancels). Each pass recomputes its fragments and keeps only their
     primitives' gradients."""
     blend, floats, valid, bins, ids, accs = residuals
-    cfg, prims = static._replace(beta=blend[0], n_hat=blend[1]), floats._replace(valid=valid)
+    cfg, prims = _joined(static, blend, floats, valid)
     beta = cfg.beta
 
     def batch(total, xs):
@@ -543,8 +552,7 @@ def _tiles_backward(static: _Tiling, residuals, g):
 
         w_b = weight(acc.m_bulge, acc.s_bulge, acc.n_bulge)
         w_v = weight(acc.m_valley, acc.s_valley, acc.n_valley)
-        q = jax.vmap(lambda t: _tile_pixels(cfg, t))(tids)
-        count, start = bins.count[tids], bins.start[tids]
+        q, count, start = _batch(cfg, bins, tids)
 
         def one_tile(q, count, start, w_b, w_v, m_b, m_v, c):
             chunk, idx = _pass_chunk(cfg, prims, bins, count, start, c)
