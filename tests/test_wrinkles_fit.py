@@ -158,25 +158,52 @@ def test_heldout_losses_are_one_agents_swarm_losses_with_each_key(fit, target, l
     np.testing.assert_allclose(heldout, expected, rtol=1e-5)
 
 
-def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_after_backtracks_in_a_row():
+def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_where_they_no_longer_gain():
     """The refinement's solve is optimistix's BFGS, step for step (the same answer as
-    ``optimistix.minimise`` on a smooth loss), and it stops once the line search has halved a
-    step ``REFINE_BACKTRACKS`` times in a row: on a loss whose gradient points uphill every step
-    after the first is a backtrack, and optimistix's own loop would run all of them."""
+    ``optimistix.minimise`` on a smooth loss). It stops once the line search has halved a step
+    ``REFINE_BACKTRACKS`` times in a row (on a loss whose gradient points uphill every step after
+    the first is a backtrack, and optimistix's own loop would run all of them), and once
+    ``REFINE_FLAT_STEPS`` accepted steps in a row each gained less than ``REFINE_GAIN`` of the
+    loss (the smooth loss lifted by a constant: the same steps, tiny relative gains)."""
 
     def smooth(z, _):
         scales = jnp.arange(1, 5, dtype=jnp.float32)
         return jnp.sum((z - 1.0) ** 2 * scales) + 0.1 * jnp.sum(z**4), 2 * z
 
+    def counted(loss, calls):
+        def f(z, _):
+            jax.debug.callback(lambda: calls.append(1))
+            return loss(z, _)
+
+        return f
+
+    def optimistix_minimise(loss, steps):
+        solver = optx.BFGS(rtol=1e-4, atol=1e-6)
+        return optx.minimise(loss, solver, z0, max_steps=steps, has_aux=True, throw=False)
+
     z0 = jnp.array([0.3, -0.5, 2.0, 0.0], jnp.float32)
     for steps in (3, 40):
-        solver = optx.BFGS(rtol=1e-4, atol=1e-6)
-        sol = optx.minimise(smooth, solver, z0, max_steps=steps, has_aux=True, throw=False)
-        z, value, aux = jax.jit(_bfgs, static_argnums=(0, 2))(smooth, z0, steps)
+        sol = optimistix_minimise(smooth, steps)
+        calls = []
+        z, value, aux = jax.jit(_bfgs, static_argnums=(0, 2))(counted(smooth, calls), z0, steps)
         np.testing.assert_array_equal(z, sol.value)
         np.testing.assert_array_equal(aux, sol.state.aux)
         assert float(value) == float(sol.state.f_info.f)
-    assert float(value) < float(smooth(z0, None)[0]) / 10
+    assert float(value) < float(smooth(z0, None)[0]) / 10 and len(calls) > 10
+
+    def lifted(z, _):
+        value, aux = smooth(z, _)
+        return value + 1e6, aux
+
+    calls = []
+    z, value, aux = _bfgs(counted(lifted, calls), z0, 40)
+    # it stopped at the step that accepted the second flat one (the first accepts the start),
+    # where optimistix's own loop stands after as many steps
+    sol, before = (optimistix_minimise(lifted, n) for n in (len(calls), len(calls) - 1))
+    assert sol.state.num_accepted_steps == 1 + _fit.REFINE_FLAT_STEPS
+    assert before.state.num_accepted_steps == _fit.REFINE_FLAT_STEPS
+    np.testing.assert_array_equal(z, sol.value)
+    assert float(value) == float(sol.state.f_info.f) < float(lifted(z0, None)[0])
 
     @jax.custom_jvp
     def uphill(z):
@@ -184,12 +211,7 @@ def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_after_backtracks_i
 
     uphill.defjvp(lambda z, t: (uphill(z[0]), -2 * jnp.sum(z[0] * t[0])))
     calls = []
-
-    def lying(z, _):
-        jax.debug.callback(lambda: calls.append(1))
-        return uphill(z), None
-
-    z, value, _ = _bfgs(lying, z0, 100)
+    z, value, _ = _bfgs(counted(lambda z, _: (uphill(z), None), calls), z0, 100)
     np.testing.assert_array_equal(z, z0)
     # the start, then the backtracks
     assert len(calls) == 1 + _fit.REFINE_BACKTRACKS and float(value) == float(uphill(z0))
