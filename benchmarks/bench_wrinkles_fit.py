@@ -78,7 +78,7 @@ def class_stages(target, narrow, grid, agents: int) -> None:
         return _simulate(key, _levels_from(a, PAPER_NAMES, base), narrow)
 
     sim = jax.jit(lambda x: jax.lax.map(one_sim, x))
-    draw = jax.jit(lambda s, lv: jax.lax.map(lambda a: _draw_checked(key, *a, narrow)[:2], (s, lv)))
+    draw = jax.jit(lambda s, lv: jax.lax.map(lambda a: _draw_checked(key, *a, narrow), (s, lv)))
     loss = jax.jit(jax.vmap(lambda image: _loss(image, stats)))
     sims, levels = jax.block_until_ready(sim(x))
     images, bad = jax.block_until_ready(draw(sims, levels))

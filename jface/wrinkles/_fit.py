@@ -553,36 +553,28 @@ def _draw(key, sims, levels, layout: _Layout) -> Float[Array, "H W"]:
     return _draw_checked(key, sims, levels, layout)[0]
 
 
-def _draw_checked(
-    key, sims, levels, layout: _Layout, passes=(None, None)
-) -> tuple[Float[Array, "H W"], Array, tuple[Array, Array]]:
-    """Like :func:`_draw`, plus whether some level was too large for the static draw sizes and
-    each level's fullest tile (primitives).
+def _draw_checked(key, sims, levels, layout: _Layout) -> tuple[Float[Array, "H W"], Array]:
+    """Like :func:`_draw`, plus whether some level was too large for the static draw sizes.
 
     Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into huge pores) can make more
     (primitive, tile) pairs than the bins hold, which would leave the map incomplete. Such a
     level is drawn without primitives and flagged, so its loss becomes NaN, which the swarm
-    contains and counts. ``passes=None`` draws every tile with as many passes as it needs (the
-    swarm); static passes (the refinement) bound them, and a tile holding more is flagged too.
+    contains and counts (and the refinement's line search backs off from). Every tile is drawn
+    with as many passes as it needs, differentiably (the drawing's own gradient).
     """
-    out, bad, fullest = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool), []
+    out, bad = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool)
     for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout)):
-        opts = _options(i, layout, passes[i])
-        fullest.append(jnp.max(bins.count))
-        over = bins.overflow
-        if passes[i] is not None:
-            over = over | (fullest[i] > passes[i] * _CAPACITY)
-        bins = bins._replace(count=jnp.where(over, 0, bins.count))  # draw no primitive then
-        out = out + render(k_noise, prims, bins, levels[i], layout.shape, opts, True)
-        bad = bad | over
-    return out[: layout.size[0], : layout.size[1]], bad, tuple(fullest)
+        bins = bins._replace(count=jnp.where(bins.overflow, 0, bins.count))  # no primitive then
+        out = out + render(k_noise, prims, bins, levels[i], layout.shape, _options(i, layout), True)
+        bad = bad | bins.overflow
+    return out[: layout.size[0], : layout.size[1]], bad
 
 
-def _options(level: int, layout: _Layout, passes=None) -> DrawOptions:
+def _options(level: int, layout: _Layout) -> DrawOptions:
     """Rasteriser settings of a level (the finest without bulge, as in the paper)."""
     return DrawOptions(
         bulge=level == 0, tile=_TILE, capacity=_CAPACITY, span=layout.span[level],
-        passes=passes, beta=BETA, n_hat=N_HAT, entries=layout.entries[level],
+        passes=None, beta=BETA, n_hat=N_HAT, entries=layout.entries[level],
     )  # fmt: skip
 
 
@@ -692,7 +684,7 @@ class _SwarmLoss(eqx.Module):
     def _map(self, layout: _Layout, levels):
         """The loss of one agent (NaN where undrawable)."""
         sims, levels = _simulate(self.key, levels, layout)
-        image, bad = _draw_checked(self.key, sims, levels, layout)[:2]
+        image, bad = _draw_checked(self.key, sims, levels, layout)
         return jnp.where(bad, jnp.nan, _loss(image, self.target))
 
 
@@ -886,7 +878,7 @@ def fit_wrinkles(
     ahead = None
     if refine_steps:
         like = _levels_from(jnp.asarray((low + high) / 2), names, base)  # the answer's types
-        refine_args = (refining, target_stats, fields, (_REFINE_PASSES,) * 2, refine_steps)
+        refine_args = (refining, target_stats, fields, refine_steps)
         ahead = compile_ahead(_refined, sim_keys[0], like, *refine_args)
     # the fit's refinements by their starts, each solved once: a polish that gained nothing
     # comes back after the next rung when the swarm found nothing better, and as a start of the
@@ -1177,15 +1169,7 @@ def _refine(sim_key, levels, start, layout, target_stats, fields, steps) -> _Ref
     start = jnp.asarray(start, jnp.float32)
     if steps == 0 or not fields:
         return _Refined(_snapped(levels, layout), start, None)
-    passes = (_REFINE_PASSES,) * 2
-    while True:
-        fullest, answer, loss, image = _refined(
-            sim_key, levels, layout, target_stats, fields, passes, steps
-        )
-        need = tuple(max(p, _refine_passes(int(c))) for p, c in zip(passes, fullest, strict=True))
-        if need == passes:
-            break
-        passes = need  # the start's fullest tile needs more (rare): solve again with enough
+    answer, loss, image = _refined(sim_key, levels, layout, target_stats, fields, steps)
     if not bool(loss < start):  # keep the swarm's answer unless beaten
         return _Refined(_snapped(levels, layout), start, None)
     return _Refined(answer, loss, image)
@@ -1197,31 +1181,13 @@ def _snapped(levels, layout: _Layout):
     return _with(levels[0], {"d": d}), _with(levels[1], {"d": d / 2})
 
 
-#: The refinement's static drawing passes at least (512 primitives per tile), so that almost
-#: every answer shares one compiled refinement (with passes from each answer's fullest tile, a
-#: fit of another patch mostly compiled it again, 35 s). The drawing and its gradient stop at a
-#: tile batch's fullest tile, so the bound costs nothing: it only limits what a tile may hold.
-_REFINE_PASSES = 32
-
-
-def _refine_passes(fullest: int) -> int:
-    """Static passes (differentiable drawing) for a start whose fullest tile holds ``fullest``
-    primitives: :data:`_REFINE_PASSES`, or for a fuller tile 1.5-3x headroom (a step whose wider
-    fields need more mostly stays drawable; a step beyond is inf and the line search backs off)
-    rounded to a power of two."""
-    need = max(1, -(-3 * fullest // (2 * _CAPACITY)))
-    return max(_REFINE_PASSES, 1 << (need - 1).bit_length())
-
-
 @functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
-def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, steps):
-    """One program for a refinement: the simulation of ``levels`` (α_d snapped), the start's
-    fullest tile per level, and BFGS over the logits of ``fields`` (static, each in its search
-    range) with the drawing's ``passes`` (static). Returns that fullest tile, the answer, its
-    loss (inf where undrawable) and its map, both from the solve's last accepted step (no
-    other drawing to compile: held-out keys are scored by the swarm's program)."""
+def _refined(sim_key, levels, layout: _Layout, target_stats, fields, steps):
+    """One program for a refinement: the simulation of ``levels`` (α_d snapped) and BFGS over
+    the logits of ``fields`` (static, each in its search range). Returns the answer, its loss
+    (inf where undrawable) and its map, both from the solve's last accepted step (no other
+    drawing to compile: held-out keys are scored by the swarm's program)."""
     sims, levels = _simulate(sim_key, levels, layout)
-    fullest = [jnp.max(bins.count) for *_, bins in _binned(sim_key, sims, levels, layout)]
 
     def unpack(z):
         changes: tuple[dict, dict] = ({}, {})
@@ -1230,7 +1196,7 @@ def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, ste
         return tuple(_with(p, c) for p, c in zip(levels, changes, strict=True))
 
     def loss(z, _):
-        image, bad, _ = _draw_checked(sim_key, sims, unpack(z), layout, passes)
+        image, bad = _draw_checked(sim_key, sims, unpack(z), layout)
         # inf where undrawable: the line search backs off
         return jnp.where(bad, jnp.inf, _loss(image, target_stats)), image
 
@@ -1240,7 +1206,7 @@ def _refined(sim_key, levels, layout: _Layout, target_stats, fields, passes, ste
 
     z0 = jnp.stack([logit(*field) for field in fields]).astype(jnp.float32)
     z, value, image = _bfgs(loss, z0, steps)
-    return jnp.stack(fullest), unpack(z), value, image
+    return unpack(z), value, image
 
 
 #: The refinement stops once its line search has halved a step this many times in a row: the
