@@ -10,9 +10,15 @@ simulation keys, ``WrinkleFit.heldout_loss``), the epochs each trial ran and, fo
 targets, the recovered α_deposit and α_θ of level 1 against the truth; the paper mode's line
 adds the fast/paper ratios of time, loss and held-out loss when both ran on the target.
 
-``--save DIR`` keeps each target (``<target>.npy``) and each fit (``<target>-<mode>-<seed>.npz``:
-the fitted map, the swarm's history, the fitted levels as JSON) for
-``examples/wrinkles_fit_modes.py``, which draws them side by side.
+``--save DIR`` keeps each target (``<target>.npy``) and each fit (``<target>-<mode>-<seed>.npz``,
+:func:`jface.io.save_arrays` of kind ``"WrinkleFitRun"``: the fitted map, the swarm's history,
+and the report's numbers and fitted levels as metadata) for ``examples/wrinkles_fit_modes.py``,
+which draws them side by side. A rerun with the same ``--save`` keeps every fit whose file was
+made by the same jface source with the same settings (reported with ``"kept": true``), so the
+full benchmark (3 seeds × 5 targets × 2 modes, about 15 hours on two CPU cores) can run in
+parts and survive an interruption. Last, a summary line per target gives the medians over the
+seeds of each mode's time, loss and held-out loss (from this run's fits and the kept ones) and
+the fast/paper ratios of the medians against the goals (≤ 600 s, ≤ 1.05×).
 
 ``--stages`` first prints the cost of one swarm evaluation split into simulation, drawing and
 texture loss, per size class of the α_d grid, and the layout time (its pores and graphs).
@@ -36,6 +42,7 @@ from skimage import data
 
 from jface import detail
 from jface._compilation import keep_compiled_programs
+from jface.io import content_key, load_arrays, save_arrays
 from jface.optim import texture_stats
 from jface.wrinkles import REFINE_STEPS, WrinkleParams, fit_wrinkles, params_to_json
 from jface.wrinkles._fit import (
@@ -173,56 +180,116 @@ def main() -> None:
                    time.perf_counter() - start)  # fmt: skip
             stages(target, layout, 8)
             evaluation_cost(target, layout, args.agents)
+        runs = {}  # (mode, seed) → the run's numbers
         for seed in args.seeds:
-            done = {}
             for mode in args.modes:
-                start = time.perf_counter()
-                fit = fit_wrinkles(
-                    jax.random.key(seed), target, n_agents=args.agents, n_epochs=args.epochs,
-                    n_trials=args.trials, n_steps=args.steps, d_levels=args.d_levels,
-                    refine_steps=args.refine_steps, mode=mode,
-                )  # fmt: skip
-                jax.block_until_ready(fit.loss)
-                elapsed = time.perf_counter() - start
-                done[mode] = (elapsed, float(fit.loss), fit.heldout_loss)
-                if args.save:
-                    np.savez(
-                        args.save / f"{name}-{mode}-{seed}.npz", fitted=np.asarray(fit.fitted),
-                        history=np.asarray(fit.swarm.history), seconds=elapsed,
-                        loss=float(fit.loss), levels=params_to_json(fit.levels, "uv"),
-                    )  # fmt: skip
+                run = runs[mode, seed] = fit_run(name, target, mode, seed, args)
                 extra = {}
-                if name.startswith("known-"):
-                    extra = {"deposit": round(float(fit.levels[0].deposit), 3),
-                             "theta": round(float(fit.levels[0].theta), 3),
-                             "truth": {"deposit": 0.5, "theta": 0.8}}  # fmt: skip
-                if mode == "paper" and "fast" in done:
-                    fast_s, fast_loss, fast_heldout = done["fast"]
-                    extra |= {
-                        "time_fast_over_paper": round(fast_s / elapsed, 3),
-                        "loss_fast_over_paper": round(fast_loss / float(fit.loss), 3),
-                        "heldout_fast_over_paper": finite(fast_heldout / fit.heldout_loss),
+                if mode == "paper" and ("fast", seed) in runs:
+                    fast = runs["fast", seed]
+                    extra = {
+                        "time_fast_over_paper": round(fast["seconds"] / run["seconds"], 3),
+                        "loss_fast_over_paper": round(fast["loss"] / run["loss"], 3),
+                        "heldout_fast_over_paper": ratio(fast["heldout_loss"], run["heldout_loss"]),
                     }
                 report(
                     f"wrinkle fit, {mode} mode, target {name} {target.shape[0]}², seed {seed}, "
                     f"{args.agents} agents, {args.epochs} epochs, {args.trials} trials",
-                    elapsed,
-                    goal_s=600,
-                    swarm_loss=float(fit.swarm_loss),
-                    loss=float(fit.loss),
-                    heldout_loss=finite(fit.heldout_loss),
-                    epochs_run=list(fit.epochs_run),
-                    evaluations=args.agents * sum(e + 1 for e in fit.epochs_run),
-                    polishes=polish_count(fit, mode, args),
-                    refined_from_each_start=[float(v) for v in fit.refined_losses],
-                    nonfinite_evaluations=int(np.sum(np.asarray(fit.swarm.n_nonfinite))),
+                    run["seconds"], goal_s=600, **{k: v for k, v in run.items() if k != "seconds"},
                     **extra,
-                )
+                )  # fmt: skip
+        summary(name, target.shape[0], runs, args.modes)
+
+
+def fit_run(name: str, target: np.ndarray, mode: str, seed: int, args) -> dict:
+    """The numbers of one fit: kept from ``--save`` when the same source and settings made them,
+    else fitted now (and kept there, atomically)."""
+    settings = {
+        "target": name, "size": args.size, "mode": mode, "seed": seed, "agents": args.agents,
+        "epochs": args.epochs, "trials": args.trials, "steps": args.steps,
+        "d_levels": args.d_levels, "refine_steps": args.refine_steps,
+    }  # fmt: skip
+    key = content_key([], settings)
+    path = args.save / f"{name}-{mode}-{seed}.npz" if args.save else None
+    if path is not None and path.exists():
+        try:
+            _, kept = load_arrays(path, kind="WrinkleFitRun")
+        except ValueError as err:  # damaged or of an older format: fitted again
+            print(f"{path}: not kept ({err})", flush=True)
+        else:
+            if kept.pop("key", None) == key:
+                kept.pop("levels", None)
+                return kept | {"kept": True}
+    start = time.perf_counter()
+    fit = fit_wrinkles(
+        jax.random.key(seed), target, n_agents=args.agents, n_epochs=args.epochs,
+        n_trials=args.trials, n_steps=args.steps, d_levels=args.d_levels,
+        refine_steps=args.refine_steps, mode=mode,
+    )  # fmt: skip
+    jax.block_until_ready(fit.loss)
+    run = {
+        "seconds": time.perf_counter() - start,
+        "swarm_loss": float(fit.swarm_loss),
+        "loss": float(fit.loss),
+        "heldout_loss": finite(fit.heldout_loss),
+        "epochs_run": list(fit.epochs_run),
+        "evaluations": args.agents * sum(e + 1 for e in fit.epochs_run),
+        "polishes": polish_count(fit, mode, args),
+        "refined_from_each_start": [float(v) for v in fit.refined_losses],
+        "nonfinite_evaluations": int(np.sum(np.asarray(fit.swarm.n_nonfinite))),
+    }
+    if name.startswith("known-"):
+        run |= {f: round(float(getattr(fit.levels[0], f)), 3) for f in ("deposit", "theta")} | {
+            "truth": {f: float(getattr(TRUTH[0], f)) for f in ("deposit", "theta")}
+        }
+    if path is not None:
+        arrays = {"fitted": np.asarray(fit.fitted), "history": np.asarray(fit.swarm.history)}
+        levels = params_to_json(fit.levels, "uv")
+        save_arrays(path, arrays, run | {"key": key, "levels": levels}, kind="WrinkleFitRun")
+    return run
+
+
+def summary(name: str, size: int, runs: dict, modes) -> None:
+    """One line: per mode the medians over the seeds of time, loss and held-out loss (and of the
+    α_deposit and α_θ errors for the known targets; α_θ is axial), and the fast/paper ratios of
+    the medians against the goals."""
+    medians, seeds = {}, {}
+    for mode in modes:
+        rows = [r for (m, _), r in runs.items() if m == mode]
+        if not rows:
+            continue
+        med = {f: float(np.median([r[f] for r in rows if r[f] is not None] or [np.nan]))
+               for f in ("seconds", "loss", "heldout_loss")}  # fmt: skip
+        if "truth" in rows[0]:
+            truth = rows[0]["truth"]
+            axial = [
+                abs((r["theta"] - truth["theta"] + np.pi / 2) % np.pi - np.pi / 2) for r in rows
+            ]
+            med |= {"deposit_error": float(np.median([abs(r["deposit"] - truth["deposit"])
+                                                      for r in rows])),
+                    "theta_error": float(np.median(axial))}  # fmt: skip
+        medians[mode], seeds[mode] = med, len(rows)
+    extra = {}
+    if {"fast", "paper"} <= medians.keys():
+        fast, paper = medians["fast"], medians["paper"]
+        extra = {"loss_fast_over_paper": ratio(fast["loss"], paper["loss"]),
+                 "heldout_fast_over_paper": ratio(fast["heldout_loss"], paper["heldout_loss"]),
+                 "goal_loss_ratio": 1.05}  # fmt: skip
+    shown = medians.get("fast") or next(iter(medians.values()))  # the time of the fast mode
+    per_mode = {m: {k: finite(v) for k, v in med.items()} | {"seeds": seeds[m]}
+                for m, med in medians.items()}  # fmt: skip
+    report(f"wrinkle fit summary, target {name} {size}², medians over seeds", shown["seconds"],
+           goal_s=600, **per_mode, **extra)  # fmt: skip
 
 
 def finite(value: float) -> float | None:
     """A number for the report's JSON (None where it is not finite: JSON has no NaN)."""
     return round(float(value), 6) if np.isfinite(value) else None
+
+
+def ratio(a: float | None, b: float | None) -> float | None:
+    """``a / b`` for the report (None where either is missing or it is not finite)."""
+    return None if a is None or b is None else finite(a / b)
 
 
 if __name__ == "__main__":

@@ -42,9 +42,9 @@ def main() -> None:
             if not path.exists():
                 row.append(None)
                 continue
-            fit = np.load(path)
-            row.append(normalised(fit["fitted"]))
-            loss, seconds = float(fit["loss"]), float(fit["seconds"])
+            arrays, fit = io.load_arrays(path, kind="WrinkleFitRun")
+            row.append(normalised(arrays["fitted"]))
+            loss, seconds = fit["loss"], fit["seconds"]
             notes.append(f"{mode}: {loss:.3g}, {seconds:.0f} s")
             record[f"{name}-{mode}"] = {"loss": loss, "seconds": seconds}
         rows.append(row)

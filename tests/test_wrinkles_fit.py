@@ -186,6 +186,7 @@ def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_where_they_no_long
         sol = optimistix_minimise(smooth, steps)
         calls = []
         z, value, aux = jax.jit(_bfgs, static_argnums=(0, 2))(counted(smooth, calls), z0, steps)
+        jax.effects_barrier()  # every counted call has run
         np.testing.assert_array_equal(z, sol.value)
         np.testing.assert_array_equal(aux, sol.state.aux)
         assert float(value) == float(sol.state.f_info.f)
@@ -197,6 +198,7 @@ def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_where_they_no_long
 
     calls = []
     z, value, aux = _bfgs(counted(lifted, calls), z0, 40)
+    jax.effects_barrier()
     # it stopped at the step that accepted the second flat one (the first accepts the start),
     # where optimistix's own loop stands after as many steps
     sol, before = (optimistix_minimise(lifted, n) for n in (len(calls), len(calls) - 1))
@@ -212,6 +214,7 @@ def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_where_they_no_long
     uphill.defjvp(lambda z, t: (uphill(z[0]), -2 * jnp.sum(z[0] * t[0])))
     calls = []
     z, value, _ = _bfgs(counted(lambda z, _: (uphill(z), None), calls), z0, 100)
+    jax.effects_barrier()
     np.testing.assert_array_equal(z, z0)
     # the start, then the backtracks
     assert len(calls) == 1 + _fit.REFINE_BACKTRACKS and float(value) == float(uphill(z0))

@@ -88,7 +88,8 @@ D_RANGE = (0.02, 0.05)
 #: Number of α_d values whose pores and graphs are precomputed, per mode: building them is most
 #: of a fit's fixed cost; fast mode's 16 step α_d by 4–10 %, the paper mode's 32 by 2–5 %.
 D_LEVELS = {"fast": 16, "paper": 32}
-#: BFGS steps of the refinement, per mode, at most (it stops earlier when converged): each costs
+#: BFGS steps of the refinement, per mode, at most (it stops earlier where its steps no longer
+#: gain, :data:`REFINE_BACKTRACKS` and :data:`REFINE_FLAT_STEPS`): each costs
 #: about seven swarm evaluations (a gradient through the drawing). Fast mode took 10 until
 #: measured: with 30, its default fits of 256² crops (seed 0) reached 0.71x (`gravel`), 0.59x
 #: (`brick`) and 0.83x (a map drawn from known parameters) the paper mode's held-out loss,
@@ -780,8 +781,8 @@ def fit_wrinkles(
         d_range: search range of α_d (fixes the pore capacities).
         n_agents, n_epochs, n_trials: swarm size, epochs, trials (paper: 50, 100, 3).
         n_steps: simulation steps per level (paper: 50).
-        refine_steps: BFGS steps on the drawing parameters afterwards, from each start (0: none;
-            default: :data:`REFINE_STEPS` of the mode).
+        refine_steps: BFGS steps on the drawing parameters afterwards, at most, from each start
+            (0: none; default: :data:`REFINE_STEPS` of the mode).
         refine_starts: starts of that refinement, at most (default: the third number of
             :func:`fit_budget`, up to :data:`REFINE_STARTS`).
         d_levels: α_d values (evenly spaced over ``d_range``) whose pores and graphs are built
@@ -1078,7 +1079,7 @@ def fit_budget(
     mode: str = "fast",
 ) -> tuple[int, int, int]:
     """The most swarm epochs (each ``n_agents`` evaluations), polishes (refinements of a
-    trial's best, each about as dear as ``7 * refine_steps`` evaluations) and starts of the
+    trial's best, each at most about as dear as ``7 * refine_steps`` evaluations) and starts of the
     final refinement that :func:`fit_wrinkles` with these settings runs (fitting drawing
     parameters, as the default names do; without them nothing is refined): all the epochs in
     paper mode; in fast mode a field of trials halved after every rung, then the last trial on
@@ -1213,11 +1214,11 @@ def _refined(sim_key, levels, layout: _Layout, target_stats, fields, steps):
 #: gradient then no longer predicts the loss (where a primitive's coverage or a bin changes), and
 #: smaller steps almost never gain.
 REFINE_BACKTRACKS = 6
-#: The refinement stops as well after this many accepted steps in a row that each lowered its
-#: loss by less than ``REFINE_GAIN`` of it: a polish from a best that an earlier one refined
-#: gains about 1e-5 a step for all its steps. Replayed for 30 steps, the 10 refinements of a
-#: `known-1` fit and 6 from small fits' answers (`brick`, `gravel`) took 285 steps instead of
-#: 480, every loss within 0.3 % of the 30 steps' (docs/wrinkles.md).
+#: The refinement stops as well after this many accepted steps in a row (backtracks between them
+#: aside) that each lowered its loss by less than ``REFINE_GAIN`` of it: a polish from a best
+#: that an earlier one refined gains about 1e-5 a step for all its steps. Replayed for 30 steps,
+#: the 10 refinements of a `known-1` fit and 6 from small fits' answers (`brick`, `gravel`) took
+#: 285 steps instead of 480, every loss within 0.3 % of the 30 steps' (docs/wrinkles.md).
 REFINE_FLAT_STEPS, REFINE_GAIN = 2, 1e-4
 
 
