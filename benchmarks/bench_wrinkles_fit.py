@@ -187,11 +187,9 @@ def main() -> None:
                 extra = {}
                 if mode == "paper" and ("fast", seed) in runs:
                     fast = runs["fast", seed]
-                    extra = {
-                        "time_fast_over_paper": round(fast["seconds"] / run["seconds"], 3),
-                        "loss_fast_over_paper": round(fast["loss"] / run["loss"], 3),
-                        "heldout_fast_over_paper": ratio(fast["heldout_loss"], run["heldout_loss"]),
-                    }
+                    extra = {f"{what}_fast_over_paper": ratio(fast[field], run[field])
+                             for what, field in (("time", "seconds"), ("loss", "loss"),
+                                                 ("heldout", "heldout_loss"))}  # fmt: skip
                 report(
                     f"wrinkle fit, {mode} mode, target {name} {target.shape[0]}², seed {seed}, "
                     f"{args.agents} agents, {args.epochs} epochs, {args.trials} trials",
