@@ -29,6 +29,14 @@ Run: ``python benchmarks/bench_wrinkles_fit.py [--targets known-1 brick] [--mode
 
 from __future__ import annotations
 
+import os
+
+from jface._distributed import cpu_device_flags, deterministic_cpu_flags
+
+# as the command line fits: XLA's CPU threads deterministic and a device per core (JAX reads the
+# flags when it starts, which the imports below do)
+os.environ["XLA_FLAGS"] = cpu_device_flags(deterministic_cpu_flags(os.environ.get("XLA_FLAGS", "")))
+
 import argparse
 import time
 from pathlib import Path

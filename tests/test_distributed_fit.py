@@ -4,6 +4,7 @@ patch at a time, reruns keep finished patches and refit changed ones, and bad se
 messages that name what is wrong. Tiny settings (64² patches, few agents and epochs): most of
 the time is compiling, shared through the persistent compilation cache of the command line."""
 
+import argparse
 import json
 import os
 import subprocess
@@ -19,6 +20,7 @@ from conftest import TINY_FIT, free_port, run_jface, run_with_process_counts
 from jface import io
 from jface._distributed import deterministic_cpu_flags
 from jface.cli import main
+from jface.cli._processes import spread
 from jface.wrinkles import fit_wrinkles
 
 #: A fit small enough to compile and run in well under a minute on two cores.
@@ -28,21 +30,31 @@ FIT = [*TINY_FIT, "--iters", "2"]
 FLAGS = deterministic_cpu_flags(os.environ.get("XLA_FLAGS", ""))
 
 # One process with 4 virtual CPU devices fits a patch with its 6 agents on one device and
-# sharded over 4 (padded to 8 with copies of agent 0), and prints both results.
+# sharded over 4 (padded to 8 with copies of agent 0), and prints both results and how often
+# the swarm's loss and the refinement were compiled.
 SHARDED = """
-import json, sys
+import json, logging, sys
 import jax, numpy as np
 from jface.wrinkles import fit_wrinkles
 patch = np.load(sys.argv[1])
 assert len(jax.local_devices()) == 4
-kwargs = dict(n_agents=6, n_epochs=2, n_trials=1, n_steps=5, d_levels=2, refine_steps=0,
+compiled = []
+class Compiles(logging.Handler):
+    def emit(self, record):
+        compiled.append(record.getMessage().split(" with ")[0])
+logging.getLogger("jax").addHandler(Compiles())
+jax.config.update("jax_log_compiles", True)
+kwargs = dict(n_agents=6, n_epochs=2, n_trials=1, n_steps=5, d_levels=2, refine_steps=2,
               d_range=(0.04, 0.05))
 out = {}
 for name, devices in (("one", jax.local_devices()[:1]), ("four", jax.local_devices())):
     fit = fit_wrinkles(jax.random.key(3), patch, devices=devices, **kwargs)
     out[name] = {"params": np.asarray(fit.swarm.params).tobytes().hex(),
                  "history": np.asarray(fit.swarm.history).tobytes().hex(),
-                 "loss": float(fit.swarm_loss)}
+                 "loss": float(fit.swarm_loss), "refined": float(fit.loss),
+                 "heldout": np.asarray(fit.heldout_losses).tobytes().hex()}
+out["compiles"] = {name: compiled.count(f"Compiling jit({name})")
+                   for name in ("swarm_evaluate", "_refined")}
 print(json.dumps(out))
 """
 
@@ -78,8 +90,29 @@ def test_sharded_swarm_equals_the_unsharded_one(gravel, tmp_path):
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     runs = json.loads(done.stdout.strip().splitlines()[-1])
-    assert runs["one"] == runs["four"]  # the same bits: best parameters and loss history
+    # the same bits: best parameters, loss history, refined and held-out losses
+    assert runs["one"] == runs["four"]
     assert np.isfinite(runs["one"]["loss"])
+    # one swarm loss per mesh, whatever placement the sharded epochs leave the positions in
+    # (held-out keys included), and one refinement for both (the bests come from the host)
+    assert runs["compiles"] == {"swarm_evaluate": 2, "_refined": 1}
+
+
+def test_a_command_run_alone_gets_a_cpu_device_per_core(monkeypatch):
+    alone = argparse.Namespace(processes=1, coordinator=None, process_id=None,
+                               num_processes=None, cluster=False, timeout=1.0)  # fmt: skip
+    cores = len(os.sched_getaffinity(0))
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
+    assert spread(alone, []) is False  # this process does the work
+    assert os.environ["XLA_FLAGS"].split() == [
+        "--xla_backend_optimization_level=0",
+        "--xla_cpu_multi_thread_eigen=false",
+        f"--xla_force_host_platform_device_count={cores}",
+    ]
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=3")  # the user's
+    spread(alone, [])
+    assert os.environ["XLA_FLAGS"].count("device_count") == 1
+    assert "device_count=3" in os.environ["XLA_FLAGS"]
 
 
 # Single-patch commands one after the other in one process (which compiles the fit once).

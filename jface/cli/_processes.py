@@ -66,7 +66,9 @@ def spread(args: argparse.Namespace, command: list[str]) -> bool:
     the process options) as N processes on this machine, wait for them and return True: the
     launched processes did the work and their process 0 reported. Otherwise return False, after
     putting XLA's CPU threading in its deterministic mode (results must not depend on thread
-    scheduling, whatever the process count; JAX reads the flags when it starts) and joining the
+    scheduling, whatever the process count; JAX reads the flags when it starts), giving a
+    process that runs alone one CPU device per core (:func:`jface._distributed.
+    cpu_device_flags`; the work is sharded over them) and joining the
     ``jax.distributed`` run that ``--coordinator``/``--process-id``/``--num-processes`` or
     ``--cluster`` name: this process then does its share.
 
@@ -87,11 +89,14 @@ def spread(args: argparse.Namespace, command: list[str]) -> bool:
         command = [*command, *(["--json"] if getattr(args, "json", False) else [])]
         _distributed.run_local_processes(command, args.processes, timeout=args.timeout)
         return True
-    os.environ["XLA_FLAGS"] = _distributed.deterministic_cpu_flags(os.environ.get("XLA_FLAGS", ""))
+    flags = _distributed.deterministic_cpu_flags(os.environ.get("XLA_FLAGS", ""))
     if joined or args.num_processes is not None or args.cluster:
         if args.cluster and joined:
             raise ValueError("--cluster detects the processes itself; drop --coordinator")
+        os.environ["XLA_FLAGS"] = flags  # the run's processes share the machine's cores
         _distributed.join_processes(
             args.coordinator, args.process_id, args.num_processes, timeout=args.timeout
         )
+    else:  # the one process: a device per core
+        os.environ["XLA_FLAGS"] = _distributed.cpu_device_flags(flags)
     return False

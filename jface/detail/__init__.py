@@ -6,7 +6,12 @@
 the paper's baselines (§4).
 """
 
-from jface._distributed import deterministic_cpu_flags, join_processes, run_local_processes
+from jface._distributed import (
+    cpu_device_flags,
+    deterministic_cpu_flags,
+    join_processes,
+    run_local_processes,
+)
 from jface.detail._analysis import (
     PCA,
     CrossValidation,
@@ -75,6 +80,7 @@ __all__ = [
     "build_database",
     "compare_groups",
     "compare_methods",
+    "cpu_device_flags",
     "cross_validate",
     "deterministic_cpu_flags",
     "group_by",

@@ -346,7 +346,7 @@ def swarm_evaluate(loss_fn, low, high, x, settings: _Settings):
 def swarm_start(key, loss_fn, low, high, settings: _Settings) -> Swarm:
     """The initial swarm of :func:`pso`'s trial with this key, evaluated."""
     x, v, seed = _positions(key, settings.n_agents, low.shape[0])
-    s, bad = swarm_evaluate(loss_fn, low, high, x, settings)
+    s, bad = swarm_evaluate(loss_fn, low, high, np.asarray(x), settings)
     return Swarm(x, v, x, s, seed, jnp.int32(0), bad)
 
 
@@ -364,7 +364,9 @@ def _absorbed(swarm: Swarm, x, v, s, bad) -> Swarm:
 def swarm_epoch(swarm: Swarm, loss_fn, low, high, cyclic, settings: _Settings) -> Swarm:
     """``swarm`` one epoch on (the same moves as :func:`pso`)."""
     x, v = _moved(swarm, cyclic, settings)
-    s, bad = swarm_evaluate(loss_fn, low, high, x, settings)
+    # the positions reach the loss from the host, so that it compiles once: a loss sharded over
+    # devices leaves its losses, and so the next moves, on its mesh
+    s, bad = swarm_evaluate(loss_fn, low, high, np.asarray(x), settings)
     return _absorbed(swarm, x, v, s, bad)
 
 

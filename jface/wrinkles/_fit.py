@@ -121,6 +121,11 @@ POLISH_FROM = 300
 #: about 0.06 s an evaluation but costs about 12 s of compile (256², two cores), so it repays
 #: itself from about 200 evaluations on (a fit of 50 agents, 100 epochs, 3 trials has 15,150).
 SPLIT_FROM = 200
+#: Swarms of fewer evaluations run on one device by default, not sharded over all: the sharded
+#: loss traces for about 1.5 s longer and the refinement beside it runs about 15 % slower, while
+#: an epoch of 8 agents is no faster (256², two CPU devices on two cores; 50 agents: 64 against
+#: 80 ms per agent).
+SHARD_FROM = SPLIT_FROM
 
 
 class WrinkleFit(eqx.Module):
@@ -802,8 +807,12 @@ def fit_wrinkles(
             found so far (unrefined; while refining: the best start refined by then), with
             ``interrupted`` set.
         devices: devices the swarm's agents are sharded over (``jax.sharding``; default: all of
-            this process's devices, :func:`jax.local_devices`); the agents are padded to a
-            multiple of the device count with copies of agent 0. The result has the same bits
+            this process's devices, :func:`jax.local_devices`, for swarms of
+            :data:`SHARD_FROM` evaluations or more, else the first); the agents are padded to a
+            multiple of the device count with copies of agent 0. On the CPU, JAX has one device
+            unless ``XLA_FLAGS`` asks for more before it starts
+            (``--xla_force_host_platform_device_count``, as the command line sets one per core:
+            :func:`jface.detail.cpu_device_flags`). The result has the same bits
             on any number of devices (on CPU with XLA's Eigen single-threaded,
             :func:`jface.detail.deterministic_cpu_flags`).
 
@@ -816,7 +825,6 @@ def fit_wrinkles(
             distinct devices of this process.
     """
     key = _checks.key(key)
-    mesh = _agent_mesh(devices)
     target = checked_target(target_patch)
     names = tuple(names)
     known = {"d", "fnoise", "snoise"} | {f"{lv}.{n}" for lv in (1, 2) for n in PARAMETER_RANGES}
@@ -851,6 +859,8 @@ def fit_wrinkles(
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     settings = swarm_settings(_checks.integer(n_agents, "n_agents", low=3), batched=True)
+    evaluations = settings.n_agents * (n_epochs + 1) * n_trials
+    mesh = _agent_mesh(devices, evaluations)
     if refine_starts is None:
         budget = (settings.n_agents, n_epochs, n_trials)
         refine_starts = fit_budget(*budget, refine_steps=refine_steps, mode=mode)[2]
@@ -861,7 +871,7 @@ def fit_wrinkles(
     spare_memory_mappings()
     layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels)
     whole = layout.merged()
-    if settings.n_agents * (n_epochs + 1) * n_trials < SPLIT_FROM:
+    if evaluations < SPLIT_FROM:
         layout = whole
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
@@ -902,7 +912,8 @@ def fit_wrinkles(
         if name not in solved:
             if ahead is not None:
                 ahead.join()
-            levels = _levels_from(jnp.asarray(params), names, base)
+            # from the host, as compiled ahead (a sharded swarm leaves its bests on its mesh)
+            levels = _levels_from(jnp.asarray(np.asarray(params)), names, base)
             solved[name] = _refine(
                 sim_key, levels, start, refining, target_stats, fields, refine_steps
             )
@@ -974,11 +985,13 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     ])  # fmt: skip
 
 
-def _agent_mesh(devices) -> Mesh | None:
-    """The mesh (axis ``"agents"``) of ``devices``, None for one device (no sharding)."""
+def _agent_mesh(devices, evaluations: int) -> Mesh | None:
+    """The mesh (axis ``"agents"``) of ``devices``, None for one device (no sharding). By default
+    a swarm of ``evaluations`` from :data:`SHARD_FROM` on is sharded over every device of this
+    process, a smaller one runs on the first."""
     local = jax.local_devices()
     if devices is None:
-        devices = local
+        devices = local if evaluations >= SHARD_FROM else local[:1]
     expected = "a non-empty sequence of distinct devices of this process (jax.local_devices())"
     if isinstance(devices, jax.Device | str | bytes) or not isinstance(devices, Sequence):
         raise TypeError(f"devices must be {expected}, got {_checks.describe(devices)}")
