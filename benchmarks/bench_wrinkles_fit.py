@@ -34,7 +34,7 @@ import os
 from jface._distributed import cpu_device_flags, deterministic_cpu_flags
 
 # as the command line fits: XLA's CPU threads deterministic and a device per core (JAX reads the
-# flags when it starts, which the imports below do)
+# flags when its backend starts, at the first computation)
 os.environ["XLA_FLAGS"] = cpu_device_flags(deterministic_cpu_flags(os.environ.get("XLA_FLAGS", "")))
 
 import argparse

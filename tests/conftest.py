@@ -228,6 +228,16 @@ def _release_compiled_code():
     spare_memory_mappings()
 
 
+@pytest.fixture(autouse=True)
+def _xla_flags_kept():
+    """``XLA_FLAGS`` as it was before the test: a command run in this process sets its own
+    (deterministic threads, a device per core), which this process, started long before, does
+    not read, but the processes later tests start would inherit."""
+    flags = os.environ["XLA_FLAGS"]
+    yield
+    os.environ["XLA_FLAGS"] = flags
+
+
 @pytest.fixture
 def key():
     """A fixed-seed key: tests are deterministic."""

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from conftest import TINY_FIT, free_port, run_jface, run_with_process_counts
 
-from jface import io
+from jface import _distributed, io
 from jface._distributed import deterministic_cpu_flags
 from jface.cli import main
 from jface.cli._processes import spread
@@ -36,8 +36,12 @@ SHARDED = """
 import json, logging, sys
 import jax, numpy as np
 from jface.wrinkles import fit_wrinkles
+from jface.wrinkles._fit import SHARD_FROM, _agent_mesh
 patch = np.load(sys.argv[1])
 assert len(jax.local_devices()) == 4
+# by default: one device for a small swarm, one per agent at most for a large one
+assert _agent_mesh(None, 50, SHARD_FROM - 1) is None
+assert _agent_mesh(None, 50, SHARD_FROM).size == 4 and _agent_mesh(None, 3, SHARD_FROM).size == 3
 compiled = []
 class Compiles(logging.Handler):
     def emit(self, record):
@@ -113,6 +117,13 @@ def test_a_command_run_alone_gets_a_cpu_device_per_core(monkeypatch):
     spread(alone, [])
     assert os.environ["XLA_FLAGS"].count("device_count") == 1
     assert "device_count=3" in os.environ["XLA_FLAGS"]
+    # a process of a jax.distributed run gets the deterministic threads alone
+    monkeypatch.setattr(_distributed, "join_processes", lambda *args, **kwargs: None)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    joined = argparse.Namespace(**{**vars(alone), "coordinator": "localhost:1", "process_id": 0,
+                                   "num_processes": 2})  # fmt: skip
+    assert spread(joined, []) is False
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=false"
 
 
 # Single-patch commands one after the other in one process (which compiles the fit once).

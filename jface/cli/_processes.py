@@ -93,7 +93,8 @@ def spread(args: argparse.Namespace, command: list[str]) -> bool:
     if joined or args.num_processes is not None or args.cluster:
         if args.cluster and joined:
             raise ValueError("--cluster detects the processes itself; drop --coordinator")
-        os.environ["XLA_FLAGS"] = flags  # the run's processes share the machine's cores
+        # how many of the run's processes share a machine is the user's to say (XLA_FLAGS)
+        os.environ["XLA_FLAGS"] = flags
         _distributed.join_processes(
             args.coordinator, args.process_id, args.num_processes, timeout=args.timeout
         )

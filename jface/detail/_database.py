@@ -45,13 +45,15 @@ def analyze_batch(
 ) -> DetailStats:
     """:func:`jface.detail.analyze` of a stack ``(n, H, W)``, sharded over devices.
 
-    The batch axis is split over ``devices`` (default: this process's devices) with
+    The batch axis is split over ``devices`` (default: this process's devices, at most one per
+    map) with
     ``jax.sharding``; each device analyses its share one map at a time. The result equals
     ``jax.vmap(analyze)(images)``, and a map's result has the same bits in any batch.
     """
     images = _checks.float_array(images, "images", ndim=3)
-    devices = list(devices or jax.local_devices())
     n = images.shape[0]
+    # by default at most one device per map: the padding never outgrows the batch
+    devices = list(devices or jax.local_devices()[: max(n, 1)])
     grid, n_scales, n_orientations, bins = validate_layout(
         images.shape[1:], grid, n_scales, n_orientations, bins, boundary
     )
@@ -201,7 +203,7 @@ def _build_database(
                 "the command's arguments, its maps' contents or jface's code", fingerprint
             )
         mine = range(process, len(chunks), n_processes)
-        devices = list(devices or jax.local_devices())
+        devices = list(devices) if devices else None  # default: analyze_batch's
         estimate = Estimate(sum(len(chunks[i]) for i in mine), "map", enabled=progress)
         for i in tqdm(mine, desc="analyze", unit="chunk", disable=not progress):
             if _part(paths[i], keys[i]) is not None:

@@ -806,14 +806,14 @@ def fit_wrinkles(
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
             found so far (unrefined; while refining: the best start refined by then), with
             ``interrupted`` set.
-        devices: devices the swarm's agents are sharded over (``jax.sharding``; default: all of
-            this process's devices, :func:`jax.local_devices`, for swarms of
+        devices: devices the swarm's agents are sharded over (``jax.sharding``; default: this
+            process's devices, :func:`jax.local_devices`, at most one per agent, for swarms of
             :data:`SHARD_FROM` evaluations or more, else the first); the agents are padded to a
             multiple of the device count with copies of agent 0. On the CPU, JAX has one device
-            unless ``XLA_FLAGS`` asks for more before it starts
-            (``--xla_force_host_platform_device_count``, as the command line sets one per core:
-            :func:`jface.detail.cpu_device_flags`). The result has the same bits
-            on any number of devices (on CPU with XLA's Eigen single-threaded,
+            unless asked for more before its backend starts (``XLA_FLAGS``
+            ``--xla_force_host_platform_device_count``, as the command line sets one per core,
+            :func:`jface.detail.cpu_device_flags`, or ``JAX_NUM_CPU_DEVICES``). The result has
+            the same bits on any number of devices (on CPU with XLA's Eigen single-threaded,
             :func:`jface.detail.deterministic_cpu_flags`).
 
     Returns:
@@ -860,7 +860,7 @@ def fit_wrinkles(
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     settings = swarm_settings(_checks.integer(n_agents, "n_agents", low=3), batched=True)
     evaluations = settings.n_agents * (n_epochs + 1) * n_trials
-    mesh = _agent_mesh(devices, evaluations)
+    mesh = _agent_mesh(devices, settings.n_agents, evaluations)
     if refine_starts is None:
         budget = (settings.n_agents, n_epochs, n_trials)
         refine_starts = fit_budget(*budget, refine_steps=refine_steps, mode=mode)[2]
@@ -985,13 +985,13 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     ])  # fmt: skip
 
 
-def _agent_mesh(devices, evaluations: int) -> Mesh | None:
+def _agent_mesh(devices, n_agents: int, evaluations: int) -> Mesh | None:
     """The mesh (axis ``"agents"``) of ``devices``, None for one device (no sharding). By default
-    a swarm of ``evaluations`` from :data:`SHARD_FROM` on is sharded over every device of this
-    process, a smaller one runs on the first."""
+    a swarm of ``evaluations`` from :data:`SHARD_FROM` on is sharded over the devices of this
+    process, at most one per agent, a smaller one runs on the first."""
     local = jax.local_devices()
     if devices is None:
-        devices = local if evaluations >= SHARD_FROM else local[:1]
+        devices = local[:n_agents] if evaluations >= SHARD_FROM else local[:1]
     expected = "a non-empty sequence of distinct devices of this process (jax.local_devices())"
     if isinstance(devices, jax.Device | str | bytes) or not isinstance(devices, Sequence):
         raise TypeError(f"devices must be {expected}, got {_checks.describe(devices)}")
