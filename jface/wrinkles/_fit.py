@@ -96,12 +96,13 @@ D_LEVELS = {"fast": 16, "paper": 32}
 #: against 1.11x, 0.54x and 1.06x with 10, for 12-23 % more time; with seed 1 `brick` gained
 #: too and `gravel` lost (1.17x against 1.00x): the held-out loss fell in 3 of 5 such pairs.
 REFINE_STEPS = {"fast": 30, "paper": 30}
-#: Starts of the final refinement: the best answer of every trial that ran to its end (paper mode:
-#: all; fast mode: the race's winner), then that best trial's next personal bests, up to this many
-#: in all. The swarm's loss ranks answers poorly for what the refinement makes of them (on gravel,
-#: the paper mode's worst trial, 0.045, refined to 0.014 and its best, 0.032, to 0.021). A fit
-#: takes the extra starts while they cost at most a tenth of its swarm's evaluations (a 256²
-#: exploratory fit of 40 evaluations spent 23 s on 4 starts, half its time warm).
+#: Starts of the final refinement: the best answer of every trial that ran to its end (paper
+#: mode: all; fast mode: the race's winner and the trials that ran on after it stalled), then
+#: the best such trial's next personal bests, up to this many in all. The swarm's loss
+#: ranks answers poorly for what the refinement makes of them (on gravel, the paper mode's worst
+#: trial, 0.045, refined to 0.014 and its best, 0.032, to 0.021). A fit takes the extra starts
+#: while they cost at most a tenth of its swarm's evaluations (a 256² exploratory fit of 40
+#: evaluations spent 23 s on 4 starts, half its time warm).
 REFINE_STARTS = 4
 #: Simulation keys that score a fit's answer besides its own (:attr:`WrinkleFit.heldout_losses`):
 #: each costs one swarm evaluation, once per fit (a refinement of 30 BFGS steps up to 210).
@@ -788,8 +789,10 @@ def fit_wrinkles(
         n_steps: simulation steps per level (paper: 50).
         refine_steps: BFGS steps on the drawing parameters afterwards, at most, from each start
             (0: none; default: :data:`REFINE_STEPS` of the mode).
-        refine_starts: starts of that refinement, at most (default: the third number of
-            :func:`fit_budget`, up to :data:`REFINE_STARTS`).
+        refine_starts: starts of that refinement, at most (default: one, more up to
+            :data:`REFINE_STARTS` while they cost at most a tenth of the swarm's evaluations,
+            and one more for each start's cost in the epochs of the race that its stalled
+            trials left unspent; the third number of :func:`fit_budget` is the most).
         d_levels: α_d values (evenly spaced over ``d_range``) whose pores and graphs are built
             once (default: :data:`D_LEVELS` of the mode); an agent simulates with the nearest,
             and that value is what the result reports.
@@ -800,7 +803,9 @@ def fit_wrinkles(
             refined (as at the end) after each of its rungs and, when that gains and stays in
             the search box, rejoins its swarm as its best agent's personal best, so the race
             compares refined answers (``progress`` saw the epoch's best before), and the last
-            trial's stall is judged after each rung's polish; ``"paper"``: every trial runs
+            trial's stall is judged after each rung's polish; when it stalls before the race's
+            epochs (:func:`fit_budget`) are spent, the trials it beat run on with the rest, the
+            best first, in the same way; ``"paper"``: every trial runs
             all ``n_epochs`` (the paper's procedure).
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
@@ -861,9 +866,10 @@ def fit_wrinkles(
     settings = swarm_settings(_checks.integer(n_agents, "n_agents", low=3), batched=True)
     evaluations = settings.n_agents * (n_epochs + 1) * n_trials
     mesh = _agent_mesh(devices, settings.n_agents, evaluations)
-    if refine_starts is None:
-        budget = (settings.n_agents, n_epochs, n_trials)
-        refine_starts = fit_budget(*budget, refine_steps=refine_steps, mode=mode)[2]
+    budget = fit_budget(settings.n_agents, n_epochs, n_trials, refine_steps=refine_steps, mode=mode)
+    auto_starts = refine_starts is None
+    if auto_starts:
+        refine_starts = _refine_starts(settings.n_agents, budget[0], refine_steps)
     refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
     k_sim, k_swarm = jax.random.split(key)
     heldout_keys = jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), HELDOUT_KEYS)
@@ -933,11 +939,14 @@ def fit_wrinkles(
             for t, run in enumerate(runs):
                 run.advance(n_epochs, search, t, progress)
         else:
-            finished = [_halve(runs, n_epochs, search, progress, polish)]
+            finished = _halve(runs, n_epochs, search, progress, polish)
     except KeyboardInterrupt:  # keep what the swarms found so far
         interrupted = True
     swarm = _result(runs, low, high)
     epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
+    if auto_starts:  # the swarm's unspent epochs go to more starts
+        unspent = budget[0] - sum(epochs)
+        refine_starts = _refine_starts(settings.n_agents, budget[0], refine_steps, unspent)
     answers = []  # (trial, parameters, refined) of each start
     if not interrupted:
         try:
@@ -1049,27 +1058,61 @@ class _Trial:
         return len(h) > PATIENCE and h[-PATIENCE - 1] - h[-1] <= STALL_TOLERANCE * abs(h[-1])
 
 
-def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> int:
+def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> list[int]:
     """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs, the better half
     goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
     early when it stalls. With ``polish``, every trial's best is polished after each of its
     rungs, before the trials are compared, and the last trial runs whole rungs (the last one
-    cut at ``n_epochs``), stopping when it is still stalled after a rung's polish: a trial runs
-    ``ceil(epochs / rung)`` polishes. Returns the last trial."""
+    cut at ``n_epochs``), stopping when it is still stalled after a rung's polish. When it stops
+    before the race's epochs (:func:`fit_budget`) are spent, the trials it beat run on in the
+    same way with the rest, the best first, each up to ``n_epochs``. Returns the trials that
+    ran on after the race, the winner first."""
     rung = _rung(n_epochs)
+    budget = _race_epochs(len(runs), n_epochs)[0]
     alive = list(range(len(runs)))
     while len(alive) > 1:
         for t in alive:
             runs[t].advance(rung, search, t, progress)
             runs[t].polish(polish, search)
         alive = sorted(alive, key=lambda t: runs[t].history[-1])[: -(-len(alive) // 2)]
-    (t,) = alive
-    # a polishing fit runs whole rungs and judges its stall after the rung's polish (one that
-    # gains sends the swarm on from the polished best)
-    while (done := len(runs[t].history) - 1) < n_epochs and not runs[t].stalled():
-        runs[t].advance(min(rung, n_epochs - done), search, t, progress, stall=polish is None)
-        runs[t].polish(polish, search)
-    return t
+    beaten = sorted(set(range(len(runs))) - set(alive), key=lambda t: runs[t].history[-1])
+    finished = []
+    for t in alive + beaten:
+        run, ran = runs[t], False
+        # a polishing fit runs whole rungs and judges its stall after the rung's polish (one
+        # that gains sends the swarm on from the polished best)
+        while (done := len(run.history) - 1) < n_epochs and not run.stalled():
+            left = budget - sum(len(r.history) - 1 for r in runs)
+            if left <= 0:
+                break
+            run.advance(min(rung, n_epochs - done, left), search, t, progress, stall=polish is None)
+            run.polish(polish, search)
+            ran = True
+        if ran or t in alive:
+            finished.append(t)
+    return finished
+
+
+def _race_epochs(n_trials: int, n_epochs: int) -> tuple[int, int]:
+    """Epochs of every trial of the fast mode's race together, at most (the halved field's
+    rungs, then the last trial's rest up to ``n_epochs``), and that rest."""
+    rung, epochs, done = _rung(n_epochs), 0, 0
+    while n_trials > 1:
+        epochs, done = epochs + n_trials * rung, done + rung
+        n_trials = -(-n_trials // 2)
+    rest = max(0, n_epochs - done)
+    return epochs + rest, rest
+
+
+def _refine_starts(n_agents: int, epochs: int, refine_steps: int, unspent: int = 0) -> int:
+    """Starts of the final refinement after ``epochs`` of ``n_agents``: one, more (up to
+    :data:`REFINE_STARTS`) while the extra ones cost at most a tenth of the epochs'
+    evaluations, and one more for each start's cost (about ``7 * refine_steps`` evaluations) in
+    the ``unspent`` epochs of a race whose trials stalled before its end."""
+    if not refine_steps:
+        return 1
+    cost = 7 * refine_steps
+    return min(REFINE_STARTS, 1 + epochs * n_agents // (10 * cost)) + unspent * n_agents // cost
 
 
 def _rung(n_epochs: int) -> int:
@@ -1096,28 +1139,28 @@ def fit_budget(
     final refinement that :func:`fit_wrinkles` with these settings runs (fitting drawing
     parameters, as the default names do; without them nothing is refined): all the epochs in
     paper mode; in fast mode a field of trials halved after every rung, then the last trial on
-    to ``n_epochs`` (fewer when it stalls). The starts: one, and more (up to
-    :data:`REFINE_STARTS`) while the extra ones cost at most a tenth of the epochs'
-    evaluations."""
+    to ``n_epochs``, and when it stalls sooner the trials it beat with the epochs left. The
+    starts: one, more (up to :data:`REFINE_STARTS`) while the extra ones cost at most a tenth
+    of the epochs' evaluations, and in fast mode one more for each start's cost in the epochs
+    that stalled trials left unspent (the most: all after the race)."""
     mode = _checks.choice(mode, "mode", ("fast", "paper"))
     n_agents = _checks.integer(n_agents, "n_agents", low=3)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
     refine_steps = REFINE_STEPS[mode] if refine_steps is None else refine_steps
     refine_steps = _checks.integer(refine_steps, "refine_steps", low=0)
-    polishes = 0
+    polishes, rest = 0, 0
     if mode == "paper":
         epochs = n_trials * n_epochs
     else:
-        rung, epochs, done, rungs = _rung(n_epochs), 0, 0, 0
-        while n_trials > 1:
-            epochs, done, rungs = epochs + n_trials * rung, done + rung, rungs + n_trials
-            n_trials = -(-n_trials // 2)
-        rest = max(0, n_epochs - done)
-        epochs += rest
-        polishes = (rungs + -(-rest // rung)) * _polishes(mode, refine_steps, n_agents, n_epochs)
-    extra = epochs * n_agents // (10 * 7 * refine_steps) if refine_steps else 0
-    return epochs, polishes, min(REFINE_STARTS, 1 + extra)
+        epochs, rest = _race_epochs(n_trials, n_epochs)
+        if _polishes(mode, refine_steps, n_agents, n_epochs):
+            # one after every rung; after the race, every trial that runs on runs whole rungs
+            # but its last (cut at n_epochs or the end of the budget)
+            rung = _rung(n_epochs)
+            polishes = -(-epochs // rung) + (n_trials - 1) * (rung > 1)
+    # the most unspent epochs: every trial stalled at the end of the race
+    return epochs, polishes, _refine_starts(n_agents, epochs, refine_steps, rest)
 
 
 def _starts(runs: list[_Trial], finished: list[int], low, high, n: int):
