@@ -549,6 +549,21 @@ def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
     assert float(fit.swarm_loss) <= min(after for *_, after in winner) * (1 + 1e-6)
 
 
+def test_epochs_the_stalled_race_left_buy_more_refinement_starts(target, monkeypatch):
+    """Made to stall at once (any loss stalls after one epoch), both trials stop after the
+    race's first rung, leaving 7 of its 1 + 1 + 7 epochs unspent: 35 evaluations of 5 agents,
+    two starts' worth at 7 × 2 each, so the final refinement takes 1 + 2 starts (the winner's
+    best and its next two personal bests) where the budget alone gives 1."""
+    monkeypatch.setattr(_fit, "STALL_TOLERANCE", 1e9)
+    monkeypatch.setattr(_fit, "PATIENCE", 1)
+    small = dict(SMALL, n_agents=5, n_epochs=8)  # rungs of one epoch, no polishes
+    fit = fit_wrinkles(jax.random.key(2), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
+                       n_trials=2, refine_steps=2, **small)  # fmt: skip
+    assert fit.epochs_run == (1, 1) and fit_budget(5, 8, 2, refine_steps=2) == (9, 0, 1 + 2)
+    assert _fit._refine_starts(5, 9, 2) == 1 and len(fit.refined_losses) == 1 + 2
+    assert float(fit.loss) == float(min(fit.refined_losses))
+
+
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="Linux's memory mappings")
 def test_a_fit_drops_compiled_programs_near_the_memory_mapping_limit(target, monkeypatch):
     """Past vm.max_map_count the next compile crashes the interpreter: a fit drops JAX's
