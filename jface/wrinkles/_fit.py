@@ -98,7 +98,8 @@ D_LEVELS = {"fast": 16, "paper": 32}
 REFINE_STEPS = {"fast": 30, "paper": 30}
 #: Starts of the final refinement: the best answer of every trial that ran to its end (paper
 #: mode: all; fast mode: the race's winner and the trials that ran on after it stalled), then
-#: the best such trial's next personal bests, up to this many in all. The swarm's loss
+#: the best such trial's next personal bests, up to this many in all (and one more for each
+#: start's cost in the epochs a stalled race left, :func:`_refine_starts`). The swarm's loss
 #: ranks answers poorly for what the refinement makes of them (on gravel, the paper mode's worst
 #: trial, 0.045, refined to 0.014 and its best, 0.032, to 0.021). A fit takes the extra starts
 #: while they cost at most a tenth of its swarm's evaluations (a 256² exploratory fit of 40
@@ -867,10 +868,8 @@ def fit_wrinkles(
     evaluations = settings.n_agents * (n_epochs + 1) * n_trials
     mesh = _agent_mesh(devices, settings.n_agents, evaluations)
     budget = fit_budget(settings.n_agents, n_epochs, n_trials, refine_steps=refine_steps, mode=mode)
-    auto_starts = refine_starts is None
-    if auto_starts:
-        refine_starts = _refine_starts(settings.n_agents, budget[0], refine_steps)
-    refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
+    if refine_starts is not None:  # else counted after the swarm, from the epochs it left
+        refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
     k_sim, k_swarm = jax.random.split(key)
     heldout_keys = jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), HELDOUT_KEYS)
     # each new patch size compiles programs of its own: a process fitting many must not crash
@@ -944,7 +943,7 @@ def fit_wrinkles(
         interrupted = True
     swarm = _result(runs, low, high)
     epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
-    if auto_starts:  # the swarm's unspent epochs go to more starts
+    if refine_starts is None:  # the swarm's unspent epochs go to more starts
         unspent = budget[0] - sum(epochs)
         refine_starts = _refine_starts(settings.n_agents, budget[0], refine_steps, unspent)
     answers = []  # (trial, parameters, refined) of each start
