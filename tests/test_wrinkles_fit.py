@@ -391,15 +391,14 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     assert sum(epochs) <= fit_budget(10, 10, 3, refine_steps=0)[0] == 1 + 2 + 10
     # worked by hand: the defaults; either side of POLISH_FROM (rungs of 12 × 24 or 25 agents);
     # rungs of 2 with an odd rest; one trial; rungs that add up to more than n_epochs.
-    # Polishes: one per rung, and one more for each trial beaten (running on after the winner
-    # stalled, its last rung may be cut short). Starts of the final refinement (7 evaluations a
+    # Polishes: one per rung (the last trial's last may be cut short at n_epochs). Starts of the final refinement (7 evaluations a
     # BFGS step, 210 for the default 30): up to 4 within a tenth of the evaluations (none extra
     # in an exploratory fit of 40 nor in one of 39 × 20 = 780, one with 10 steps; one in 136 ×
     # 24 = 3,264), and one more for each start's cost in the epochs after the race, which
     # trials that stall there leave unspent (76 × 50 = 3,800 evaluations by default: 18 more)
-    assert fit_budget() == (136, 12 + 2, 4 + 18) and fit_budget(24) == (136, 0, 2 + 8)
-    assert fit_budget(25) == (136, 14, 2 + 9) and fit_budget(50, refine_steps=10) == (136, 14, 58)
-    assert fit_budget(150, 21, 3) == (27, 14 + 2, 2 + 12)
+    assert fit_budget() == (136, 12, 4 + 18) and fit_budget(24) == (136, 0, 2 + 8)
+    assert fit_budget(25) == (136, 12, 2 + 9) and fit_budget(50, refine_steps=10) == (136, 12, 58)
+    assert fit_budget(150, 21, 3) == (27, 14, 2 + 12)
     assert fit_budget(150, 20, 1) == (20, 10, 2 + 14)
     assert fit_budget(10, 2, 16, refine_steps=0) == (30, 0, 1)
     assert fit_budget(8, 5, 1) == (5, 0, 1) and fit_budget(20, 30, 3) == (39, 0, 1 + 2)
@@ -443,10 +442,11 @@ def test_polished_bests_join_their_swarms_and_the_race():
     finished = _fit._halve(runs, 16, search, None, polish)
     # rungs of 2 epochs: 3 trials, then 2 (ties keep the order), then trial 0 polished every 2
     # epochs until its best (0 from epoch 2 on) has not fallen for 10 epochs; the race's other
-    # 4 epochs (of 3 × 2 + 2 × 2 + 16 - 4 = 22) go to the trial it beat last, in 2 rungs
-    assert [len(r.history) - 1 for r in runs] == [12, 8, 2] and finished == [0, 1]
-    assert sum(len(r.history) - 1 for r in runs) == _fit._race_epochs(3, 16)[0] == 22
-    assert len(calls) == 3 + 2 + 4 + 2
+    # 4 epochs (of 3 × 2 + 2 × 2 + 16 - 4 = 22) are left to refinement starts: the trials it
+    # beat do not run on
+    assert [len(r.history) - 1 for r in runs] == [12, 4, 2] and finished == [0]
+    assert _fit._race_epochs(3, 16)[0] - sum(len(r.history) - 1 for r in runs) == 22 - 18
+    assert len(calls) == 3 + 2 + 4
     for r in runs:
         assert float(r.swarm.best) == 0.0 and r.history[-1] == 0.0
         np.testing.assert_array_equal(r.swarm.best_params(low, high), centre)

@@ -96,14 +96,13 @@ D_LEVELS = {"fast": 16, "paper": 32}
 #: against 1.11x, 0.54x and 1.06x with 10, for 12-23 % more time; with seed 1 `brick` gained
 #: too and `gravel` lost (1.17x against 1.00x): the held-out loss fell in 3 of 5 such pairs.
 REFINE_STEPS = {"fast": 30, "paper": 30}
-#: Starts of the final refinement: the best answer of every trial that ran to its end (paper
-#: mode: all; fast mode: the race's winner and the trials that ran on after it stalled), then
-#: the best such trial's next personal bests, up to this many in all (and one more for each
-#: start's cost in the epochs a stalled race left, :func:`_refine_starts`). The swarm's loss
-#: ranks answers poorly for what the refinement makes of them (on gravel, the paper mode's worst
-#: trial, 0.045, refined to 0.014 and its best, 0.032, to 0.021). A fit takes the extra starts
-#: while they cost at most a tenth of its swarm's evaluations (a 256² exploratory fit of 40
-#: evaluations spent 23 s on 4 starts, half its time warm).
+#: Starts of the final refinement: the best answer of every trial that ran to its end (paper mode:
+#: all; fast mode: the race's winner), then the best such trial's next personal bests, up to this
+#: many in all (and one more for each start's cost in the epochs a stalled race left,
+#: :func:`_refine_starts`). The swarm's loss ranks answers poorly for what the refinement makes of
+#: them (on gravel, the paper mode's worst trial, 0.045, refined to 0.014 and its best, 0.032, to
+#: 0.021). A fit takes the extra starts while they cost at most a tenth of its swarm's evaluations
+#: (a 256² exploratory fit of 40 evaluations spent 23 s on 4 starts, half its time warm).
 REFINE_STARTS = 4
 #: Simulation keys that score a fit's answer besides its own (:attr:`WrinkleFit.heldout_losses`):
 #: each costs one swarm evaluation, once per fit (a refinement of 30 BFGS steps up to 210).
@@ -804,10 +803,9 @@ def fit_wrinkles(
             refined (as at the end) after each of its rungs and, when that gains and stays in
             the search box, rejoins its swarm as its best agent's personal best, so the race
             compares refined answers (``progress`` saw the epoch's best before), and the last
-            trial's stall is judged after each rung's polish; when it stalls before the race's
-            epochs (:func:`fit_budget`) are spent, the trials it beat run on with the rest, the
-            best first, in the same way; ``"paper"``: every trial runs
-            all ``n_epochs`` (the paper's procedure).
+            trial's stall is judged after each rung's polish; the epochs it leaves when it
+            stalls buy more refinement starts; ``"paper"``: every trial runs all ``n_epochs``
+            (the paper's procedure).
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
             found so far (unrefined; while refining: the best start refined by then), with
@@ -1062,34 +1060,25 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
     early when it stalls. With ``polish``, every trial's best is polished after each of its
     rungs, before the trials are compared, and the last trial runs whole rungs (the last one
-    cut at ``n_epochs``), stopping when it is still stalled after a rung's polish. When it stops
-    before the race's epochs (:func:`fit_budget`) are spent, the trials it beat run on in the
-    same way with the rest, the best first, each up to ``n_epochs``. Returns the trials that
-    ran on after the race, the winner first."""
+    cut at ``n_epochs``), stopping when it is still stalled after a rung's polish: a trial runs
+    ``ceil(epochs / rung)`` polishes. Returns the last trial (as a list: the trials that ran to
+    their end). The epochs it leaves when it stalls go to refinement starts
+    (:func:`_refine_starts`): running the trials it beat on with them cost 3-5 min a fit for
+    gains that more starts gave at a fraction of that (docs/wrinkles.md)."""
     rung = _rung(n_epochs)
-    budget = _race_epochs(len(runs), n_epochs)[0]
     alive = list(range(len(runs)))
     while len(alive) > 1:
         for t in alive:
             runs[t].advance(rung, search, t, progress)
             runs[t].polish(polish, search)
         alive = sorted(alive, key=lambda t: runs[t].history[-1])[: -(-len(alive) // 2)]
-    beaten = sorted(set(range(len(runs))) - set(alive), key=lambda t: runs[t].history[-1])
-    finished = []
-    for t in alive + beaten:
-        run, ran = runs[t], False
-        # a polishing fit runs whole rungs and judges its stall after the rung's polish (one
-        # that gains sends the swarm on from the polished best)
-        while (done := len(run.history) - 1) < n_epochs and not run.stalled():
-            left = budget - sum(len(r.history) - 1 for r in runs)
-            if left <= 0:
-                break
-            run.advance(min(rung, n_epochs - done, left), search, t, progress, stall=polish is None)
-            run.polish(polish, search)
-            ran = True
-        if ran or t in alive:
-            finished.append(t)
-    return finished
+    (t,) = alive
+    # a polishing fit runs whole rungs and judges its stall after the rung's polish (one that
+    # gains sends the swarm on from the polished best)
+    while (done := len(runs[t].history) - 1) < n_epochs and not runs[t].stalled():
+        runs[t].advance(min(rung, n_epochs - done), search, t, progress, stall=polish is None)
+        runs[t].polish(polish, search)
+    return [t]
 
 
 def _race_epochs(n_trials: int, n_epochs: int) -> tuple[int, int]:
@@ -1138,10 +1127,10 @@ def fit_budget(
     final refinement that :func:`fit_wrinkles` with these settings runs (fitting drawing
     parameters, as the default names do; without them nothing is refined): all the epochs in
     paper mode; in fast mode a field of trials halved after every rung, then the last trial on
-    to ``n_epochs``, and when it stalls sooner the trials it beat with the epochs left. The
-    starts: one, more (up to :data:`REFINE_STARTS`) while the extra ones cost at most a tenth
-    of the epochs' evaluations, and in fast mode one more for each start's cost in the epochs
-    that stalled trials left unspent (the most: all after the race)."""
+    to ``n_epochs`` (fewer when it stalls). The starts: one, more (up to
+    :data:`REFINE_STARTS`) while the extra ones cost at most a tenth of the epochs'
+    evaluations, and in fast mode one more for each start's cost in the epochs that a stalled
+    last trial left unspent (the most: all after the race)."""
     mode = _checks.choice(mode, "mode", ("fast", "paper"))
     n_agents = _checks.integer(n_agents, "n_agents", low=3)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
@@ -1154,10 +1143,8 @@ def fit_budget(
     else:
         epochs, rest = _race_epochs(n_trials, n_epochs)
         if _polishes(mode, refine_steps, n_agents, n_epochs):
-            # one after every rung; after the race, every trial that runs on runs whole rungs
-            # but its last (cut at n_epochs or the end of the budget)
-            rung = _rung(n_epochs)
-            polishes = -(-epochs // rung) + (n_trials - 1) * (rung > 1)
+            # one after every rung (the last trial's last cut at n_epochs)
+            polishes = -(-epochs // _rung(n_epochs))
     # the most unspent epochs: every trial stalled at the end of the race
     return epochs, polishes, _refine_starts(n_agents, epochs, refine_steps, rest)
 
