@@ -390,12 +390,12 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     # at most: three rungs of one epoch, two more, the last trial's eight; no polishes
     assert sum(epochs) <= fit_budget(10, 10, 3, refine_steps=0)[0] == 1 + 2 + 10
     # worked by hand: the defaults; either side of POLISH_FROM (rungs of 12 × 24 or 25 agents);
-    # rungs of 2 with an odd rest; one trial; rungs that add up to more than n_epochs.
-    # Polishes: one per rung (the last trial's last may be cut short at n_epochs). Starts of the final refinement (7 evaluations a
-    # BFGS step, 210 for the default 30): up to 4 within a tenth of the evaluations (none extra
-    # in an exploratory fit of 40 nor in one of 39 × 20 = 780, one with 10 steps; one in 136 ×
-    # 24 = 3,264), and one more for each start's cost in the epochs after the race, which
-    # trials that stall there leave unspent (76 × 50 = 3,800 evaluations by default: 18 more)
+    # rungs of 2 with an odd rest; one trial; rungs that add up to more than n_epochs. Polishes: one
+    # per rung (the last trial's last may be cut short at n_epochs). Starts of the final refinement
+    # (7 evaluations a BFGS step, 210 for the default 30): up to 4 within a tenth of the evaluations
+    # (none extra in an exploratory fit of 40 nor in one of 39 × 20 = 780, one with 10 steps; one in
+    # 136 × 24 = 3,264), and one more for each start's cost in the epochs after the race, which
+    # a last trial that stalls there leaves unspent (76 × 50 = 3,800 evaluations: 18 more)
     assert fit_budget() == (136, 12, 4 + 18) and fit_budget(24) == (136, 0, 2 + 8)
     assert fit_budget(25) == (136, 12, 2 + 9) and fit_budget(50, refine_steps=10) == (136, 12, 58)
     assert fit_budget(150, 21, 3) == (27, 14, 2 + 12)
