@@ -1063,8 +1063,8 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     cut at ``n_epochs``), stopping when it is still stalled after a rung's polish: a trial runs
     ``ceil(epochs / rung)`` polishes. Returns the last trial (as a list: the trials that ran to
     their end). The epochs it leaves when it stalls go to refinement starts
-    (:func:`_refine_starts`): running the trials it beat on with them made 16 default fits
-    take 1.39x as long (median) for the same median loss (docs/wrinkles.md)."""
+    (:func:`_refine_starts`): running the trials it beat on with them made 17 default fits
+    take 1.45x as long (median) for the same median loss (docs/wrinkles.md)."""
     rung = _rung(n_epochs)
     alive = list(range(len(runs)))
     while len(alive) > 1:
