@@ -12,11 +12,11 @@ adds the fast/paper ratios of time, loss and held-out loss when both ran on the 
 
 ``--save DIR`` keeps each target (``<target>.npy``) and each fit (``<target>-<mode>-<seed>.npz``,
 :func:`jface.io.save_arrays` of kind ``"WrinkleFitRun"``: the fitted map, the swarm's history,
-and the report's numbers and fitted levels as metadata) for ``examples/wrinkles_fit_modes.py``,
-which draws them side by side. A rerun with the same ``--save`` keeps every fit whose file was
-made by the same jface source with the same settings (reported with ``"kept": true``), so the
-full benchmark (3 seeds × 5 targets × 2 modes, about 15 hours on two CPU cores) can run in
-parts and survive an interruption. Last, a summary line per target gives the medians over the
+and the report's numbers, fitted levels and provenance (versions, device) as metadata) for
+``examples/wrinkles_fit_modes.py``, which draws them side by side. A rerun with the same
+``--save`` keeps every fit whose file was made by the same jface source with the same settings
+(reported with ``"kept": true``), so the full benchmark (3 seeds × 5 targets × 2 modes, about
+15 hours on two CPU cores) can run in parts and survive an interruption. Last, a summary line per target gives the medians over the
 seeds of each mode's time, loss and held-out loss (from this run's fits and the kept ones) and
 the fast/paper ratios of the medians against the goals (≤ 600 s, ≤ 1.05×).
 
@@ -50,7 +50,7 @@ from skimage import data
 
 from jface import detail
 from jface._compilation import keep_compiled_programs
-from jface.io import content_key, load_arrays, save_arrays
+from jface.io import content_key, load_arrays, provenance, save_arrays
 from jface.optim import texture_stats
 from jface.wrinkles import REFINE_STEPS, WrinkleParams, fit_wrinkles, params_to_json
 from jface.wrinkles._fit import (
@@ -251,7 +251,8 @@ def fit_run(name: str, target: np.ndarray, mode: str, seed: int, args) -> dict:
     if path is not None:
         arrays = {"fitted": np.asarray(fit.fitted), "history": np.asarray(fit.swarm.history)}
         levels = params_to_json(fit.levels, "uv")
-        save_arrays(path, arrays, run | {"key": key, "levels": levels}, kind="WrinkleFitRun")
+        meta = provenance(seed=seed, **run, key=key, levels=levels)  # the versions a rerun needs
+        save_arrays(path, arrays, meta, kind="WrinkleFitRun")
     return run
 
 

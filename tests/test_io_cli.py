@@ -2,6 +2,7 @@
 
 import json
 
+import jax
 import numpy as np
 import pytest
 from conftest import write_aged_maps
@@ -18,6 +19,9 @@ def test_exr_round_trip_with_metadata(tmp_path):
     back = io.read_exr(path)
     np.testing.assert_array_equal(back.channels["Y"], data)
     assert back.metadata["seed"] == 7 and back.metadata["noise"] == 0.1
+    # what a rerun needs to repeat the bits: the versions and the kind of device
+    assert back.metadata["jax_version"] == jax.__version__
+    assert back.metadata["device"] == jax.devices()[0].device_kind
     np.testing.assert_array_equal(io.read_map(path), data)
     half = io.write_exr(tmp_path / "h.exr", data, half=True, compression="zip")
     np.testing.assert_allclose(io.read_map(half), data, rtol=1e-3, atol=1e-3)
