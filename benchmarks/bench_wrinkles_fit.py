@@ -16,9 +16,10 @@ and the report's numbers, fitted levels and provenance (versions, device) as met
 ``examples/wrinkles_fit_modes.py``, which draws them side by side. A rerun with the same
 ``--save`` keeps every fit whose file was made by the same jface source with the same settings
 (reported with ``"kept": true``), so the full benchmark (3 seeds × 5 targets × 2 modes, about
-15 hours on two CPU cores) can run in parts and survive an interruption. Last, a summary line per target gives the medians over the
-seeds of each mode's time, loss and held-out loss (from this run's fits and the kept ones) and
-the fast/paper ratios of the medians against the goals (≤ 600 s, ≤ 1.05×).
+15 hours on two CPU cores) can run in parts and survive an interruption. Last, a summary line
+per target gives the medians over the seeds of each mode's time, loss and held-out loss (from
+this run's fits and the kept ones) and the fast/paper ratios of the medians against the goals
+(≤ 600 s, ≤ 1.05×).
 
 ``--stages`` first prints the cost of one swarm evaluation split into simulation, drawing and
 texture loss, per size class of the α_d grid, and the layout time (its pores and graphs).
@@ -238,6 +239,7 @@ def fit_run(name: str, target: np.ndarray, mode: str, seed: int, args) -> dict:
         "swarm_loss": float(fit.swarm_loss),
         "loss": float(fit.loss),
         "heldout_loss": finite(fit.heldout_loss),
+        "heldout_losses": [finite(v) for v in fit.heldout_losses],  # per key, for their spread
         "epochs_run": list(fit.epochs_run),
         "evaluations": args.agents * sum(e + 1 for e in fit.epochs_run),
         "polishes": polish_count(fit, mode, args),

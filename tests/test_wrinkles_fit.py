@@ -155,7 +155,10 @@ def test_heldout_losses_are_one_agents_swarm_losses_with_each_key(fit, target, l
     expected = [
         eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in HELDOUT
     ]
-    np.testing.assert_allclose(heldout, expected, rtol=1e-5)
+    # a batch of three reduces in another order than one agent alone (up to 1e-4 of the loss);
+    # the keys' losses lie further apart than that, so a wrong key cannot pass
+    np.testing.assert_allclose(heldout, expected, rtol=5e-4)
+    assert np.min(np.abs(np.diff(np.sort(expected))) / np.sort(expected)[1:]) > 5e-4
 
 
 def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_where_they_no_longer_gain():
