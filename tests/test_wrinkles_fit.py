@@ -2,6 +2,7 @@
 gradient refinement, the CLI, bad input. A small setting (64², α_d near its top, few agents):
 the fitted pipeline compiles once per module."""
 
+import dataclasses
 import inspect
 import json
 import logging
@@ -159,6 +160,30 @@ def test_heldout_losses_are_one_agents_swarm_losses_with_each_key(fit, target, l
     # the keys' losses lie further apart than that, so a wrong key cannot pass
     np.testing.assert_allclose(heldout, expected, rtol=5e-4)
     assert np.min(np.abs(np.diff(np.sort(expected))) / np.sort(expected)[1:]) > 5e-4
+
+
+def test_heldout_maps_the_static_draw_sizes_cannot_hold_are_drawn_with_room(
+    fit, target, layout, monkeypatch
+):
+    """A held-out map that overflows the fit's static draw sizes (bins cut to one tile per
+    primitive and one (primitive, tile) pair, which no map fits) is drawn again on bins sized to
+    it: the losses the fit's own sizes give, not NaN."""
+    stats = texture_stats(target)
+    low, high, cyclic = (np.asarray(a, np.float32) for a in _fit._bounds(NAMES, D_RANGE, {}))
+    search = (low, high, cyclic, swarm_settings(3, batched=True))
+    params = np.asarray(fit.swarm.params)
+    keys = HELDOUT[:2]
+    redrawn = []
+    roomy = _fit._roomy_loss
+    monkeypatch.setattr(_fit, "_roomy_loss", lambda *a: redrawn.append(1) or roomy(*a))
+    cramped = dataclasses.replace(layout, span=(1, 1), entries=(1, 1))
+    heldout = _fit._heldout(_SwarmLoss(fit.sim_key, stats, TRUE, cramped, NAMES), params,
+                            keys, search)  # fmt: skip
+    expected = [
+        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in keys
+    ]
+    assert len(redrawn) == len(keys)
+    np.testing.assert_allclose(heldout, expected, rtol=5e-4)
 
 
 def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_where_they_no_longer_gain():

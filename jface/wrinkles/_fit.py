@@ -55,6 +55,8 @@ from jface.wrinkles._drawing import (
     DrawOptions,
     bin_primitives,
     entries_of,
+    needed_entries,
+    needed_span,
     primitives,
     render,
 )
@@ -151,10 +153,10 @@ class WrinkleFit(eqx.Module):
         answer_trial: the trial whose answer ``levels`` is (static; in paper mode not always
             ``swarm.best_trial``: another trial's answer can refine better).
         heldout_losses: losses of ``levels`` simulated and drawn with :data:`HELDOUT_KEYS`
-            other simulation keys (the same pores; inf where the fit's static draw sizes cannot
-            draw one). ``loss`` is the least of many answers on one key and so flatters the
-            parameters; :attr:`heldout_loss`, the mean of these, flatters them less (it keeps
-            the fit's pores, which a render with another seed also resamples).
+            other simulation keys (the same pores; a map the fit's static draw sizes cannot hold
+            is drawn on bins sized to it). ``loss`` is the least of many answers on one key and
+            so flatters the parameters; :attr:`heldout_loss`, the mean of these, flatters them
+            less (it keeps the fit's pores, which a render with another seed also resamples).
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
@@ -172,8 +174,7 @@ class WrinkleFit(eqx.Module):
 
     @property
     def heldout_loss(self) -> float:
-        """Mean of the finite :attr:`heldout_losses`, those drawn (NaN when none is; a key whose
-        map overflows the fit's static draw sizes is not drawn): about what a map drawn
+        """Mean of the finite :attr:`heldout_losses` (NaN when none is): about what a map drawn
         with these parameters and another simulation key scores, unlike ``loss``, which the
         search selected for its own key."""
         losses = np.asarray(self.heldout_losses)
@@ -986,10 +987,38 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     x = np.full((settings.n_agents, low.shape[0]), np.nan, np.float32)
     x[0] = (np.asarray(params) - low) / (high - low)
     x = jnp.asarray(x)
-    return jnp.stack([
+    losses = np.asarray([
         swarm_evaluate(eqx.tree_at(lambda f: f.key, loss, k), low, high, x, settings)[0][0]
         for k in keys
     ])  # fmt: skip
+    # a key whose map the fit's static draw sizes cannot hold is drawn again with room for it
+    undrawn = np.flatnonzero(~np.isfinite(losses))
+    if undrawn.size:
+        levels = _levels_from(jnp.asarray(params, jnp.float32), loss.names, loss.base)
+        layout = loss.layout.narrowed(int(loss.layout.size_class(levels[0].d)))
+        for i in undrawn:
+            losses[i] = _roomy_loss(keys[i], levels, layout, loss.target)
+    return jnp.asarray(losses)
+
+
+def _roomy_loss(key, levels, layout: _Layout, target: TextureStats) -> float:
+    """The loss of ``levels`` simulated and drawn with ``key`` on bins sized to that map rather
+    than to the fit's static sizes (a program per new size; sizes rounded up so that few are)."""
+    spans, entries = [], []
+    for i, prims in enumerate(_primitives_of(key, levels, layout)):
+        sized = {"tile": _TILE, "bulge": _options(i, layout).bulge, "periodic": True}
+        spans.append(max(layout.span[i], needed_span(prims, layout.shape, **sized)))
+        needed = _round_up(needed_entries(prims, layout.shape, **sized))
+        entries.append(max(layout.entries[i], needed))
+    roomy = dataclasses.replace(layout, span=tuple(spans), entries=tuple(entries))
+    return float(_loss(_fitted_map(key, levels, roomy), target))
+
+
+@functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
+def _primitives_of(key, levels, layout: _Layout) -> list:
+    """Each level's primitives of ``levels`` simulated and drawn with ``key``."""
+    sims, levels = _simulate(key, levels, layout)
+    return [prims for _, prims, _ in _binned(key, sims, levels, layout)]
 
 
 def _agent_mesh(devices, n_agents: int, evaluations: int) -> Mesh | None:
