@@ -174,8 +174,8 @@ def test_heldout_maps_the_static_draw_sizes_cannot_hold_are_drawn_with_room(
     params = np.asarray(fit.swarm.params)
     keys = HELDOUT[:2]
     redrawn = []
-    roomy = _fit._roomy_loss
-    monkeypatch.setattr(_fit, "_roomy_loss", lambda *a: redrawn.append(1) or roomy(*a))
+    primitives_of = _fit._primitives_of
+    monkeypatch.setattr(_fit, "_primitives_of", lambda *a: redrawn.append(1) or primitives_of(*a))
     cramped = dataclasses.replace(layout, span=(1, 1), entries=(1, 1))
     heldout = _fit._heldout(_SwarmLoss(fit.sim_key, stats, TRUE, cramped, NAMES), params,
                             keys, search)  # fmt: skip

@@ -991,27 +991,27 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
         swarm_evaluate(eqx.tree_at(lambda f: f.key, loss, k), low, high, x, settings)[0][0]
         for k in keys
     ])  # fmt: skip
-    # a key whose map the fit's static draw sizes cannot hold is drawn again with room for it
+    # keys whose maps the fit's static draw sizes cannot hold are drawn again with room for them
     undrawn = np.flatnonzero(~np.isfinite(losses))
     if undrawn.size:
         levels = _levels_from(jnp.asarray(params, jnp.float32), loss.names, loss.base)
         layout = loss.layout.narrowed(int(loss.layout.size_class(levels[0].d)))
+        roomy = _roomy(layout, [_primitives_of(keys[i], levels, layout) for i in undrawn])
         for i in undrawn:
-            losses[i] = _roomy_loss(keys[i], levels, layout, loss.target)
+            losses[i] = _loss(_fitted_map(keys[i], levels, roomy), loss.target)
     return jnp.asarray(losses)
 
 
-def _roomy_loss(key, levels, layout: _Layout, target: TextureStats) -> float:
-    """The loss of ``levels`` simulated and drawn with ``key`` on bins sized to that map rather
-    than to the fit's static sizes (a program per new size; sizes rounded up so that few are)."""
-    spans, entries = [], []
-    for i, prims in enumerate(_primitives_of(key, levels, layout)):
-        sized = {"tile": _TILE, "bulge": _options(i, layout).bulge, "periodic": True}
-        spans.append(max(layout.span[i], needed_span(prims, layout.shape, **sized)))
-        needed = _round_up(needed_entries(prims, layout.shape, **sized))
-        entries.append(max(layout.entries[i], needed))
-    roomy = dataclasses.replace(layout, span=tuple(spans), entries=tuple(entries))
-    return float(_loss(_fitted_map(key, levels, roomy), target))
+def _roomy(layout: _Layout, maps: Sequence[list]) -> _Layout:
+    """``layout`` with draw sizes that hold each of ``maps`` (per map its levels' primitives):
+    one program draws them all."""
+    spans, entries = list(layout.span), list(layout.entries)
+    for prims_of_levels in maps:
+        for i, prims in enumerate(prims_of_levels):
+            sized = {"tile": _TILE, "bulge": _options(i, layout).bulge, "periodic": True}
+            spans[i] = max(spans[i], needed_span(prims, layout.shape, **sized))
+            entries[i] = max(entries[i], _round_up(needed_entries(prims, layout.shape, **sized)))
+    return dataclasses.replace(layout, span=tuple(spans), entries=tuple(entries))
 
 
 @functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
