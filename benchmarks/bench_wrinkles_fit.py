@@ -224,9 +224,9 @@ def fit_run(name: str, target: np.ndarray, mode: str, seed: int, args) -> dict:
         except ValueError as err:  # damaged or of an older format: fitted again
             print(f"{path}: not kept ({err})", flush=True)
         else:
-            if kept.pop("key", None) == key:
-                kept.pop("levels", None)
-                return kept | {"kept": True}
+            if kept.pop("key", None) == key:  # the run's numbers, without what describes it
+                dropped = {"levels", "seed", *provenance()}
+                return {f: v for f, v in kept.items() if f not in dropped} | {"kept": True}
     start = time.perf_counter()
     fit = fit_wrinkles(
         jax.random.key(seed), target, n_agents=args.agents, n_epochs=args.epochs,

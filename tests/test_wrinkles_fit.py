@@ -173,7 +173,7 @@ def test_heldout_maps_the_static_draw_sizes_cannot_hold_are_drawn_with_room(
     search = (low, high, cyclic, swarm_settings(3, batched=True))
     params = np.asarray(fit.swarm.params)
     keys = HELDOUT[:2]
-    redrawn = []
+    redrawn = []  # one `_primitives_of` call per redrawn key
     primitives_of = _fit._primitives_of
     monkeypatch.setattr(_fit, "_primitives_of", lambda *a: redrawn.append(1) or primitives_of(*a))
     cramped = dataclasses.replace(layout, span=(1, 1), entries=(1, 1))

@@ -390,7 +390,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
             "loss": _finite_or_none(fit.loss),
             "swarm_loss": _finite_or_none(fit.swarm_loss),
             "refined_losses": _finite_list(fit.refined_losses),
-            # the answer with other simulation keys (null: undrawable at the fit's draw sizes)
+            # the answer with other simulation keys (null: undrawable even on bins sized to it)
             "heldout_loss": _finite_or_none(fit.heldout_loss),
             "heldout_losses": _finite_list(fit.heldout_losses),
             "answer_trial": fit.answer_trial,

@@ -982,7 +982,9 @@ def _fitted_map(sim_key, levels, layout: _Layout) -> Float[Array, "H W"]:
 def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     """Losses of ``params`` (one agent, in the fit's units) simulated and drawn with each of
     ``keys``: the trial's compiled swarm loss with another key, the agent in its first row and
-    the other rows undrawable (non-finite), which cost nothing."""
+    the other rows undrawable (non-finite), which cost nothing. A key whose map the fit's static
+    draw sizes cannot hold (non-finite there) is drawn again on bins sized to its primitives, so
+    every key has its loss; NaN only where even those bins overflow."""
     low, high, _, settings = search
     x = np.full((settings.n_agents, low.shape[0]), np.nan, np.float32)
     x[0] = (np.asarray(params) - low) / (high - low)
@@ -991,26 +993,30 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
         swarm_evaluate(eqx.tree_at(lambda f: f.key, loss, k), low, high, x, settings)[0][0]
         for k in keys
     ])  # fmt: skip
-    # keys whose maps the fit's static draw sizes cannot hold are drawn again with room for them
     undrawn = np.flatnonzero(~np.isfinite(losses))
     if undrawn.size:
-        levels = _levels_from(jnp.asarray(params, jnp.float32), loss.names, loss.base)
+        lo, hi = jnp.asarray(low, jnp.float32), jnp.asarray(high, jnp.float32)
+        units = lo + x[0] * (hi - lo)  # the agent exactly as the swarm read it
+        levels = _levels_from(units, loss.names, loss.base)
         layout = loss.layout.narrowed(int(loss.layout.size_class(levels[0].d)))
-        roomy = _roomy(layout, [_primitives_of(keys[i], levels, layout) for i in undrawn])
-        for i in undrawn:
-            losses[i] = _loss(_fitted_map(keys[i], levels, roomy), loss.target)
+        keyed = [eqx.tree_at(lambda f: f.key, loss, keys[i]) for i in undrawn]
+        roomy = _roomy(layout, [_primitives_of(k.key, levels, layout) for k in keyed])
+        for i, keyed_loss in zip(undrawn, keyed, strict=True):
+            losses[i] = _redrawn_loss(keyed_loss, roomy, units)
     return jnp.asarray(losses)
 
 
 def _roomy(layout: _Layout, maps: Sequence[list]) -> _Layout:
-    """``layout`` with draw sizes that hold each of ``maps`` (per map its levels' primitives):
-    one program draws them all."""
+    """``layout`` with draw sizes that hold each of ``maps`` (per map its levels' primitives),
+    with a margin for a primitive that lands on a tile border in another compile: one program
+    draws them all."""
     spans, entries = list(layout.span), list(layout.entries)
     for prims_of_levels in maps:
         for i, prims in enumerate(prims_of_levels):
             sized = {"tile": _TILE, "bulge": _options(i, layout).bulge, "periodic": True}
-            spans[i] = max(spans[i], needed_span(prims, layout.shape, **sized))
-            entries[i] = max(entries[i], _round_up(needed_entries(prims, layout.shape, **sized)))
+            spans[i] = max(spans[i], needed_span(prims, layout.shape, **sized) + 1)
+            n = needed_entries(prims, layout.shape, **sized)
+            entries[i] = max(entries[i], _round_up(n + n // 8 + 1))
     return dataclasses.replace(layout, span=tuple(spans), entries=tuple(entries))
 
 
@@ -1019,6 +1025,12 @@ def _primitives_of(key, levels, layout: _Layout) -> list:
     """Each level's primitives of ``levels`` simulated and drawn with ``key``."""
     sims, levels = _simulate(key, levels, layout)
     return [prims for _, prims, _ in _binned(key, sims, levels, layout)]
+
+
+@functools.partial(eqx.filter_jit, compiler_options=QUICK_COMPILE)
+def _redrawn_loss(loss: _SwarmLoss, layout: _Layout, units) -> Array:
+    """The loss of one agent (the fit's units) drawn on ``layout``, NaN if that overflows."""
+    return loss._map(layout, _levels_from(units, loss.names, loss.base))
 
 
 def _agent_mesh(devices, n_agents: int, evaluations: int) -> Mesh | None:
