@@ -33,7 +33,7 @@ from jface.wrinkles import (
     params_to_json,
     parse_patch_size,
 )
-from jface.wrinkles._fit import D_LEVELS, DESIGNS, checked_target, layout_shipped
+from jface.wrinkles._fit import D_LEVELS, checked_target, layout_shipped
 
 
 def register(subparsers) -> None:
@@ -351,7 +351,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     refinements = (polishes + starts) * 7 * args.refine_steps
     evaluations = total * args.agents + refinements + HELDOUT_KEYS
     d_levels = D_LEVELS[mode] if args.d_levels is None else max(2, args.d_levels)
-    shipped = layout_shipped(patch.shape, tuple(args.d_range), args.steps, d_levels, DESIGNS[mode])
+    shipped = layout_shipped(patch.shape, tuple(args.d_range), args.steps, d_levels)
     minutes = (evaluations * 0.24 * patch.size / 256**2 + 50 + 45 * (not shipped)) / 60
     print(
         f"wrinkles fit ({mode}): {args.agents} agents × {args.epochs} epochs × {args.trials} "

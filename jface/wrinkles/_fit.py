@@ -7,12 +7,10 @@ loss (:func:`jface.optim.texture_distance`) between the synthesised map and the 
 α_d differ share one compiled program. Pores and graph depend on α_d alone (common random
 numbers: one pore key for every fit, :func:`layout_key`), so they are built on a grid of
 ``d_levels`` values of α_d, trimmed to the slots the data use, and each agent simulates on the
-nearest (α_d is effectively quantised to that grid; the reported α_d is the grid value). The fast
-mode's trials each simulate on their own of :data:`DESIGNS` pore designs (other pores from the
-same key), so its race also picks the pores. Each trial evaluates every agent with the same
-simulation key, so the loss is a deterministic function of the parameters. The map is drawn at
-the patch size rounded up to whole 8-pixel tiles (a periodic map needs whole tiles) and
-cropped. The pores and graphs do not depend on the patch
+nearest (α_d is effectively quantised to that grid; the reported α_d is the grid value). Each
+trial evaluates every agent with the same simulation key, so the loss is a deterministic function
+of the parameters. The map is drawn at the patch size rounded up to whole 8-pixel tiles (a
+periodic map needs whole tiles) and cropped. The pores and graphs do not depend on the patch
 size: they are kept once per α_d grid, the draw sizes per patch size, for the next fit in the
 process and, with the compiled programs, on disk.
 
@@ -92,11 +90,6 @@ D_RANGE = (0.02, 0.05)
 #: Number of α_d values whose pores and graphs are precomputed, per mode: building them is most
 #: of a fit's fixed cost; fast mode's 16 step α_d by 4–10 %, the paper mode's 32 by 2–5 %.
 D_LEVELS = {"fast": 16, "paper": 32}
-#: Pore designs per mode: trial ``t`` simulates on design ``t % DESIGNS[mode]`` (each with its
-#: own pores and graphs, all at the same static sizes, so they share the compiled programs).
-#: Which pores a fit uses moved its loss by 1.4–2× either way (docs/wrinkles.md), so the fast
-#: mode's race also picks among designs; the paper mode keeps one, as measured against.
-DESIGNS = {"fast": 3, "paper": 1}
 #: BFGS steps of the refinement, per mode, at most (it stops earlier where its steps no longer
 #: gain, :data:`REFINE_BACKTRACKS` and :data:`REFINE_FLAT_STEPS`): each costs
 #: about seven swarm evaluations (a gradient through the drawing). Fast mode took 10 until
@@ -149,8 +142,7 @@ class WrinkleFit(eqx.Module):
             fast mode's full fits the swarm's bests were already polished by it on the way).
         swarm: the :class:`jface.optim.PSOResult` (history for a convergence plot).
         names: the fitted parameter names, in the order of ``swarm.params`` (static).
-        sim_key: the simulation key of ``answer_trial`` (reproduces ``fitted`` with that trial's
-            pore design, :data:`DESIGNS`).
+        sim_key: the simulation key of ``answer_trial`` (reproduces ``fitted``).
         fitted: the synthesised map of ``levels``, ``(H, W)``.
         interrupted: the fit was stopped (Ctrl-C) and reports the best found so far: the
             swarm's, unrefined, or when stopped while refining, the best start refined by then.
@@ -205,10 +197,6 @@ class _Layout(eqx.Module):
     swarm evaluates each agent with its class's program (a quarter less time per evaluation).
     :meth:`merged` makes it one class again (one program to compile: the refinement, small
     swarms).
-
-    The graphs hold the grid once per pore design, design after design, at sizes common to all
-    (the slots and size classes fit every design): :meth:`design` picks one, as the swarm and
-    the drawing take it.
     """
 
     d_values: Float[Array, " K"]
@@ -221,13 +209,6 @@ class _Layout(eqx.Module):
     entries: tuple[int, int] = eqx.field(static=True)
     split: int = eqx.field(static=True)
     slots: tuple[tuple[tuple[int, int], tuple[int, int]], ...] = eqx.field(static=True)
-
-    def design(self, t: int) -> _Layout:
-        """This layout with the graphs of its pore design ``t`` alone (the same static sizes for
-        every ``t``: one compiled program draws any of them)."""
-        k = self.d_values.shape[0]
-        graphs = jax.tree.map(lambda a: a[t * k : (t + 1) * k], self.graphs)
-        return dataclasses.replace(self, graphs=graphs)
 
     def index(self, d) -> Array:
         """Index of the grid value nearest to α_d."""
@@ -287,8 +268,7 @@ def layout_key() -> Array:
 
 class _Design(NamedTuple):
     """The part of a layout that does not depend on the patch size: the α_d grid, its pores and
-    graphs (sampled on the unit square; the grid once per pore design), the simulation's
-    samples and the size classes."""
+    graphs (sampled on the unit square), the simulation's samples and the size classes."""
 
     d_values: Float[Array, " K"]
     graphs: tuple[PoreGraph, PoreGraph]
@@ -304,7 +284,7 @@ _LAYOUTS: dict[tuple, _Layout] = {}
 _KEPT = 4
 
 
-def _kept_layout(key, size, d_range, n_steps, d_levels, designs=1) -> _Layout:
+def _kept_layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     """:func:`_layout`, built once: kept in this process and, where compiled programs are kept
     (:func:`jface._compilation.keep_compiled_programs`, as the command line does), on disk, so
     that a rerun reads it (the layout runs for seconds after its programs are compiled). Its
@@ -312,10 +292,10 @@ def _kept_layout(key, size, d_range, n_steps, d_levels, designs=1) -> _Layout:
     sizes. jface ships the default fast fit's design and its draw sizes at
     :data:`SHIPPED_SIZES` (:data:`SHIPPED_LAYOUTS`), which a first fit would otherwise spend
     half a minute building."""
-    name = _layout_name(key, size, d_range, n_steps, d_levels, designs)
+    name = _layout_name(key, size, d_range, n_steps, d_levels)
 
     def build() -> _Layout:
-        design = _kept_design(key, d_range, d_levels, designs)
+        design = _kept_design(key, d_range, d_levels)
 
         build_sizes = functools.partial(_draw_sizes, key, design, size, n_steps)
         entries = kept_arrays("layouts", name, build_sizes, SHIPPED_LAYOUTS)["entries"]
@@ -324,12 +304,12 @@ def _kept_layout(key, size, d_range, n_steps, d_levels, designs=1) -> _Layout:
     return _remembered(_LAYOUTS, name, build)
 
 
-def _kept_design(key, d_range, d_levels, designs=1) -> _Design:
+def _kept_design(key, d_range, d_levels) -> _Design:
     """:func:`_design`, kept as :func:`_kept_layout` keeps a layout."""
-    name = _design_name(key, d_range, d_levels, designs)
+    name = _design_name(key, d_range, d_levels)
 
     def build():
-        return _design_arrays(_design(key, d_range, d_levels, designs))
+        return _design_arrays(_design(key, d_range, d_levels))
 
     return _remembered(
         _DESIGNS, name, lambda: _design_from(kept_arrays("designs", name, build, SHIPPED_LAYOUTS))
@@ -347,20 +327,19 @@ SHIPPED_SIZES = (64, 128, 256, 512)
 
 def ship_layouts(path: Path = SHIPPED_LAYOUTS) -> None:
     """Build the layouts :data:`SHIPPED_LAYOUTS` holds and write them to ``path``."""
-    key, d_levels, designs, n_steps = layout_key(), D_LEVELS["fast"], DESIGNS["fast"], 50
-    design = _design(key, D_RANGE, d_levels, designs)
-    name = _design_name(key, D_RANGE, d_levels, designs)
-    arrays = shipped_arrays("designs", name, _design_arrays(design))
+    key, d_levels, n_steps = layout_key(), D_LEVELS["fast"], 50
+    design = _design(key, D_RANGE, d_levels)
+    arrays = shipped_arrays("designs", _design_name(key, D_RANGE, d_levels), _design_arrays(design))
     for n in SHIPPED_SIZES:
-        name = _layout_name(key, (n, n), D_RANGE, n_steps, d_levels, designs)
+        name = _layout_name(key, (n, n), D_RANGE, n_steps, d_levels)
         arrays |= shipped_arrays("layouts", name, _draw_sizes(key, design, (n, n), n_steps))
     write_arrays(path, arrays)
 
 
-def layout_shipped(size, d_range, n_steps, d_levels, designs) -> bool:
+def layout_shipped(size, d_range, n_steps, d_levels) -> bool:
     """Whether jface ships the layout of a fit of these settings (its first fit only compiles;
     otherwise it builds the draw sizes, and the design unless another size's fit kept it)."""
-    name = _layout_name(layout_key(), size, d_range, n_steps, d_levels, designs)
+    name = _layout_name(layout_key(), size, d_range, n_steps, d_levels)
     return bool(read_shipped(SHIPPED_LAYOUTS, "layouts", name))
 
 
@@ -378,18 +357,17 @@ def _remembered(memo: dict, name: tuple, build):
     return memo[name]
 
 
-def _design_name(key, d_range, d_levels, designs) -> tuple:
+def _design_name(key, d_range, d_levels) -> tuple:
     """What a design is built from, as plain values (with the setting that changes the key's
     random stream)."""
     bits = np.asarray(jax.random.key_data(key)).tobytes()
     stream = (str(jax.random.key_impl(key)), bool(jax.config.jax_threefry_partitionable))
-    return (*stream, bits, tuple(map(float, d_range)), int(d_levels), int(designs))
+    return (*stream, bits, tuple(map(float, d_range)), int(d_levels))
 
 
-def _layout_name(key, size, d_range, n_steps, d_levels, designs) -> tuple:
+def _layout_name(key, size, d_range, n_steps, d_levels) -> tuple:
     """What a layout is built from, as plain values."""
-    design = _design_name(key, d_range, d_levels, designs)
-    return (*design, tuple(map(int, size)), int(n_steps))
+    return (*_design_name(key, d_range, d_levels), tuple(map(int, size)), int(n_steps))
 
 
 _INT16 = np.iinfo(np.int16)
@@ -428,9 +406,9 @@ def _tiled(size) -> tuple[int, int]:
     return tuple(-(-n // _TILE) * _TILE for n in size)
 
 
-def _layout(key, size, d_range, n_steps, d_levels, designs=1) -> _Layout:
+def _layout(key, size, d_range, n_steps, d_levels) -> _Layout:
     """The layout of a fit of a ``size`` patch, built anew."""
-    design = _design(key, d_range, d_levels, designs)
+    design = _design(key, d_range, d_levels)
     return _sized(design, size, n_steps, _draw_entries(key, design, size, n_steps))
 
 
@@ -445,22 +423,16 @@ def _sized(design: _Design, size, n_steps, entries) -> _Layout:
     )  # fmt: skip
 
 
-def _design(key, d_range, d_levels, designs=1) -> _Design:
-    """The pores and graphs of ``designs`` pore designs on the α_d grid (design 0 from ``key``,
-    design t from ``key`` folded with t), at sizes that hold them all."""
+def _design(key, d_range, d_levels) -> _Design:
     lo, hi = d_range
     ranges = ((lo, hi), (lo / 2, hi / 2))
+    keys = tuple(jax.random.split(key))
     caps = _capacities(lo)
     d_values = np.linspace(lo, hi, d_levels, dtype=np.float32)
-    design_keys = [key, *(jax.random.fold_in(key, t) for t in range(1, designs))]
-    pores = []
-    for k in design_keys:
-        design_pores, pore_flags = _grid_pores(tuple(jax.random.split(k)), d_values, ranges, caps)
-        _checked(None, pore_flags, SAMPLING_ERRORS)
-        pores.append(design_pores)
-    pores = jax.tree.map(lambda *a: jnp.concatenate(a), *pores)
-    # every design's densest and sparsest, on the host (measured there, not drawn)
-    ends = [jax.tree.map(lambda a, j=j: np.asarray(a)[j], pores) for j in _ends(d_levels, designs)]
+    pores, pore_flags = _grid_pores(keys, jnp.asarray(d_values), ranges, caps)
+    _checked(None, pore_flags, SAMPLING_ERRORS)
+    # the densest and the sparsest, on the host (measured there, not drawn)
+    ends = [jax.tree.map(lambda a, j=j: np.asarray(a)[j], pores) for j in (0, -1)]
     specs = tuple(covering_spec([e[i] for e in ends], ranges[i]) for i in range(2))
     graphs, graph_flags = _grid_graphs(pores, specs)
     for flags, spec in zip(graph_flags, specs, strict=True):
@@ -470,23 +442,16 @@ def _design(key, d_range, d_levels, designs=1) -> _Design:
     # that the fit's 50 steps carve the patch (N = |E| would need ~5x the steps; the paper's
     # 50,000 on a patch of a few thousand edges decays by a quarter per step)
     n_samples = tuple(min(N_SAMPLES, specs[level].k * caps[level]) for level in range(2))
-    split, slots = _size_classes(graphs, d_levels)
+    split, slots = _size_classes(graphs)
     return _Design(jnp.asarray(d_values), graphs, n_samples, split, slots)
 
 
-def _ends(d_levels: int, designs: int) -> np.ndarray:
-    """Indices of every design's densest and sparsest grid value in a design's graphs."""
-    return np.asarray([t * d_levels + j for t in range(designs) for j in (0, d_levels - 1)])
-
-
-def _size_classes(graphs: tuple[PoreGraph, PoreGraph], d_levels: int):
+def _size_classes(graphs: tuple[PoreGraph, PoreGraph]):
     """The split of the grid into a dense and a sparse size class that minimises the mean slots
-    (nodes and edges of both levels) over the grid, and each class's slots per level (that hold
-    the grid value of every design). Two classes save most of what more would (256², measured
-    per agent: two classes 24-27 % less time, four 28-35 %, but with three times the swarm's
-    compile time)."""
-    counts = np.stack([np.stack([g.node_count, g.edge_count], -1) for g in graphs], 1)
-    counts = counts.reshape(-1, d_levels, 2, 2).max(axis=0)  # (K, level, (nodes, edges))
+    (nodes and edges of both levels) over the grid, and each class's slots per level. Two
+    classes save most of what more would (256², measured per agent: two classes 24-27 % less
+    time, four 28-35 %, but with three times the swarm's compile time)."""
+    counts = np.stack([np.stack([g.node_count, g.edge_count], -1) for g in graphs], 1)  # (K,2,2)
     caps = [(g.node_mask.shape[-1], g.edge_mask.shape[-1]) for g in graphs]
     k = counts.shape[0]
 
@@ -549,15 +514,14 @@ def _grid_graphs(pores, specs):
 
 def _draw_entries(key, design: _Design, size, n_steps) -> tuple[int, int]:
     """Binned (primitive, tile) pairs per level that draw the densest and the sparsest α_d of
-    every pore design of ``design`` at ``size`` with the simulation's default weights and the
-    drawing fields at ``_WIDE``, with headroom (2x)."""
+    ``design`` at ``size`` with the simulation's default weights and the drawing fields at
+    ``_WIDE``, with headroom (2x)."""
     key, shape, d_values = jax.random.split(key)[0], _tiled(size), design.d_values
     entries = []
-    k = len(d_values)
-    ends = _ends(k, design.graphs[0].node_mask.shape[0] // k)
+    ends = jnp.asarray([0, len(d_values) - 1])
     for level in range(2):
         params = WrinkleParams(d=float(d_values[0]) / (1 + level), **_WIDE)
-        ds = d_values[ends % k] / (1 + level)
+        ds = d_values[ends] / (1 + level)
         pairs = _extremes(
             key, design.graphs[level], params, ends, ds, shape, design.n_samples[level], n_steps,
             level == 0,
@@ -910,29 +874,27 @@ def fit_wrinkles(
     heldout_keys = jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), HELDOUT_KEYS)
     # each new patch size compiles programs of its own: a process fitting many must not crash
     spare_memory_mappings()
-    designs = DESIGNS[mode]
-    layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels, designs)
+    layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels)
     whole = layout.merged()
     if evaluations < SPLIT_FROM:
         layout = whole
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
-    # one swarm per trial, each with its own simulation key and pore design; all share one
-    # compiled loss
+    # one swarm per trial, each with its own simulation key; all share one compiled loss
     runs = [
-        _Trial(k, _SwarmLoss(sk, target_stats, base, layout.design(t % designs), names, mesh))
-        for t, (k, sk) in enumerate(zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True))
+        _Trial(k, _SwarmLoss(sk, target_stats, base, layout, names, mesh))
+        for k, sk in zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True)
     ]
     low, high = low.astype(np.float32), high.astype(np.float32)
     search = (low, high, cyclic, settings)
-    # one refinement program for every answer (the whole grid's slots, any design), compiled
-    # while the swarm runs
-    refining = [whole.design(t % designs).narrowed(0) for t in range(n_trials)]
+    # one refinement program for every answer (the whole grid's slots), compiled while the
+    # swarm runs
+    refining = whole.narrowed(0)
     refine_steps = refine_steps if fields else 0
     ahead = None
     if refine_steps:
         like = _levels_from(jnp.asarray((low + high) / 2), names, base)  # the answer's types
-        refine_args = (refining[0], target_stats, fields, refine_steps)
+        refine_args = (refining, target_stats, fields, refine_steps)
         ahead = compile_ahead(_refined, sim_keys[0], like, *refine_args)
     # the fit's refinements by their starts, each solved once: a polish that gained nothing
     # comes back after the next rung when the swarm found nothing better, and as a start of the
@@ -947,25 +909,26 @@ def fit_wrinkles(
             params[index[f"{lv + 1}.{f}"]] = float(getattr(refined.levels[lv], f))
         return params
 
-    def refine(t, params, start):
-        """:func:`_refine` of ``params`` with trial ``t``'s simulation key and pore design from
-        its swarm loss ``start``."""
-        name = (t, np.asarray(params).tobytes(), float(start))
+    def refine(sim_key, params, start):
+        """:func:`_refine` of ``params`` with a trial's simulation key from its swarm loss
+        ``start``."""
+        bits = np.asarray(jax.random.key_data(sim_key)).tobytes()
+        name = (bits, np.asarray(params).tobytes(), float(start))
         if name not in solved:
             if ahead is not None:
                 ahead.join()
             # from the host, as compiled ahead (a sharded swarm leaves its bests on its mesh)
             levels = _levels_from(jnp.asarray(np.asarray(params)), names, base)
             solved[name] = _refine(
-                sim_keys[t], levels, start, refining[t], target_stats, fields, refine_steps
+                sim_key, levels, start, refining, target_stats, fields, refine_steps
             )
         return solved[name]
 
     polish = None
     if _polishes(mode, refine_steps, settings.n_agents, n_epochs):
 
-        def polish(t, best, start):  # the refinement of trial t's best, as parameters
-            refined = refine(t, best, start)
+        def polish(sim_key, best, start):  # the refinement of a trial's best, as parameters
+            refined = refine(sim_key, best, start)
             return refined_params(best, refined), float(refined.loss)
 
     interrupted = False
@@ -988,7 +951,7 @@ def fit_wrinkles(
         try:
             starts = _starts(runs, finished, low, high, refine_starts if refine_steps else 1)
             for t, params, start in starts:
-                answers.append((t, params, refine(t, params, start)))
+                answers.append((t, params, refine(sim_keys[t], params, start)))
         except KeyboardInterrupt:  # Ctrl-C while refining: the starts refined so far
             interrupted = True
     refined_losses = jnp.stack([a.loss for *_, a in answers]) if answers else jnp.zeros(0)
@@ -997,11 +960,11 @@ def fit_wrinkles(
         params = refined_params(params, answer)
     else:  # the swarm's answer as it is, unrefined (a compile may still be running)
         t, params = int(swarm.best_trial), swarm.params
-        levels = _snapped(_levels_from(params, names, base), refining[t])
+        levels = _snapped(_levels_from(params, names, base), refining)
         answer = _Refined(levels, swarm.loss, None)
     image = answer.image
     if image is None:  # a start the refinement did not beat (or none refined): drawn here
-        image = _fitted_map(sim_keys[t], answer.levels, refining[t])
+        image = _fitted_map(sim_keys[t], answer.levels, refining)
     heldout = _heldout(runs[t].loss, params, heldout_keys, search)
     return WrinkleFit(
         answer.levels, answer.loss, swarm.loss, swarm, names, sim_keys[t], image,
@@ -1111,17 +1074,17 @@ class _Trial:
             if progress is not None:
                 progress(index, len(self.history) - 1, self.history[-1])
 
-    def polish(self, polish, search, index: int) -> None:
-        """Make ``polish(index, best, best_loss) → (params, loss)`` of the swarm's best its best
-        agent's personal best, when it is better and inside the search box (None: no-op); the
-        history's last entry becomes the new best."""
+    def polish(self, polish, search) -> None:
+        """Make ``polish(sim_key, best, best_loss) → (params, loss)`` of the swarm's best its
+        best agent's personal best, when it is better and inside the search box (None: no-op);
+        the history's last entry becomes the new best."""
         if polish is None or self.swarm is None:
             return
         low, high = search[:2]
         w = self.swarm
         i = int(jnp.argmin(w.ps))
         best = np.asarray(w.best_params(low, high))
-        params, loss = polish(index, best, w.best)
+        params, loss = polish(self.loss.key, best, w.best)
         # the entries the polish left keep their normalised values exactly
         u = np.where(params == best, w.p[i], (np.asarray(params) - low) / (high - low))
         if not (loss < float(w.best) and np.all((u >= 0) & (u <= 1))):
@@ -1149,14 +1112,14 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     while len(alive) > 1:
         for t in alive:
             runs[t].advance(rung, search, t, progress)
-            runs[t].polish(polish, search, t)
+            runs[t].polish(polish, search)
         alive = sorted(alive, key=lambda t: runs[t].history[-1])[: -(-len(alive) // 2)]
     (t,) = alive
     # a polishing fit runs whole rungs and judges its stall after the rung's polish (one that
     # gains sends the swarm on from the polished best)
     while (done := len(runs[t].history) - 1) < n_epochs and not runs[t].stalled():
         runs[t].advance(min(rung, n_epochs - done), search, t, progress, stall=polish is None)
-        runs[t].polish(polish, search, t)
+        runs[t].polish(polish, search)
     return [t]
 
 
