@@ -117,9 +117,11 @@ def test_heldout_losses_score_the_answer_with_other_simulation_keys(fit, target,
         eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(fit.swarm.params[None])[0]
         for k in keys
     ]
-    np.testing.assert_allclose(fit.heldout_losses, expected, rtol=1e-5)
+    # the fit scores in a batch of its agents, which reduces in another order than one agent
+    # alone (up to 1e-4 of the loss)
+    np.testing.assert_allclose(fit.heldout_losses, expected, rtol=5e-4)
     assert np.all(np.isfinite(fit.heldout_losses)) and len(set(np.asarray(expected))) == len(keys)
-    assert fit.heldout_loss == pytest.approx(float(np.mean(expected)), rel=1e-5)
+    assert fit.heldout_loss == pytest.approx(float(np.mean(expected)), rel=5e-4)
     assert fit.heldout_loss > float(fit.loss)
 
 
@@ -407,8 +409,14 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     monkeypatch.setattr(_fit, "_LAYOUTS", {})
     monkeypatch.setattr(_fit, "_DESIGNS", {})
     monkeypatch.setattr(_fit, "kept_arrays", lambda *a: looked_up.append(a) or kept_arrays(*a))
+    inertias = []  # of every epoch's move
+    swarm_epoch = _fit.swarm_epoch
+    monkeypatch.setattr(_fit, "swarm_epoch",
+                        lambda *a: inertias.append(a[-1].inertia) or swarm_epoch(*a))  # fmt: skip
     kwargs = dict(SMALL, n_trials=3, names=NAMES, base=TRUE, refine_steps=0)
     runs = [fit_wrinkles(jax.random.key(0), target, **kwargs) for _ in range(2)]
+    # the fast mode's swarm moves with its faster decay, the paper mode's with the paper's
+    assert set(inertias) == {_fit.INERTIA["fast"]} and _fit.INERTIA["fast"][2] < 0.98
     assert np.array_equal(runs[0].swarm.params, runs[1].swarm.params)
     assert len(looked_up) == 2  # the first fit's design and layout; the second kept them
     # rungs of n_epochs // 8 = 1 epoch: three trials run one, the better two another, the best
@@ -433,6 +441,7 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     assert fit_budget(20, 30, 3, refine_steps=10) == (39, 0, 2 + 6)
     paper = fit_wrinkles(jax.random.key(1), target, mode="paper", **kwargs)
     assert paper.epochs_run == (10, 10, 10)
+    assert set(inertias[-30:]) == {_fit.INERTIA["paper"]} == {swarm_settings(3).inertia}
     assert fit_budget(10, 10, 3, mode="paper") == (30, 0, 1)
     assert len(looked_up) == 2  # another seed: the same layout (and so the same programs)
     assert not np.array_equal(paper.swarm.trial_params, runs[0].swarm.trial_params)
@@ -554,6 +563,8 @@ def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
 
     real_polish = _fit._Trial.polish
     monkeypatch.setattr(_fit, "POLISH_FROM", 1)
+    # the paper's inertia: on its path some polishes come back to a best that did not change
+    monkeypatch.setitem(_fit.INERTIA, "fast", _fit.INERTIA["paper"])
     monkeypatch.setattr(_fit, "_refine", refine)
     monkeypatch.setattr(_fit._Trial, "polish", polish)
     names = (*NAMES, "1.wrinkle_width")
