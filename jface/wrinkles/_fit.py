@@ -122,7 +122,8 @@ STALL_TOLERANCE, PATIENCE = 1e-2, 10
 #: 100th. The fast mode's trials run 12-100 epochs (the last stops when it stalls), so its
 #: inertia decays faster (0.58 after 24 epochs, 0.45 after 60): default fits of 256² `gravel`
 #: and `synthesized` maps (seeds 0-2) then ended 0.66-1.00x as high on their own keys as with
-#: 0.98, and 0.89-1.19x on the same 8 held-out keys (docs/wrinkles.md).
+#: 0.98 and 0.89-1.19x on the same 8 held-out keys; over 12 fits of six targets the median
+#: ratios were 0.93 and 0.96 (`brick` seed 0: 1.74x, docs/wrinkles.md).
 INERTIA = {"fast": (0.4, 0.6, 0.95), "paper": (0.4, 0.6, 0.98)}
 #: Fast mode polishes every trial's best with the refinement after each rung of successive
 #: halving when a rung holds at least this many evaluations: one polish (up to 30 BFGS steps)
