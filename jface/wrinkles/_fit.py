@@ -120,7 +120,7 @@ STALL_TOLERANCE, PATIENCE = 1e-2, 10
 #: The swarm's inertia ``w_t = a + b · c^t`` (Eq. 14, ``optim.pso``'s ``inertia``) by mode. The
 #: paper's decay (0.98) is made for 100 epochs: w is still 0.77 after 24 and reaches 0.48 at the
 #: 100th. The fast mode's trials run 12-100 epochs (the last stops when it stalls), so its
-#: inertia decays faster (0.58 after 24 epochs, 0.45 after 60): default fits of 256² `gravel`
+#: inertia decays faster (0.58 after 24 epochs, 0.43 after 60): default fits of 256² `gravel`
 #: and `synthesized` maps (seeds 0-2) then ended 0.66-1.00x as high on their own keys as with
 #: 0.98 and 0.89-1.19x on the same 8 held-out keys; over 12 fits of six targets the median
 #: ratios were 0.93 and 0.96 (`brick` seed 0: 1.74x, docs/wrinkles.md).
@@ -875,9 +875,9 @@ def fit_wrinkles(
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     n_agents = _checks.integer(n_agents, "n_agents", low=3)
     settings = swarm_settings(n_agents, batched=True, inertia=INERTIA[mode])
-    evaluations = settings.n_agents * (n_epochs + 1) * n_trials
-    mesh = _agent_mesh(devices, settings.n_agents, evaluations)
-    budget = fit_budget(settings.n_agents, n_epochs, n_trials, refine_steps=refine_steps, mode=mode)
+    evaluations = n_agents * (n_epochs + 1) * n_trials
+    mesh = _agent_mesh(devices, n_agents, evaluations)
+    budget = fit_budget(n_agents, n_epochs, n_trials, refine_steps=refine_steps, mode=mode)
     if refine_starts is not None:  # else counted after the swarm, from the epochs it left
         refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
     k_sim, k_swarm = jax.random.split(key)
