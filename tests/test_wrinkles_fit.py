@@ -498,6 +498,25 @@ def test_polished_bests_join_their_swarms_and_the_race():
     assert trial.swarm is before[0]
 
 
+def test_a_gaining_polish_shares_its_refined_entries_with_every_personal_best():
+    """Hand-worked on the bowl around (0.5, 1.5): the best agent (0.6, 1.0) is polished to
+    (0.6, 1.4); the changed entry, 1.4, is tried on every other personal best, and the agents
+    it brings nearer the centre take it (losses 1.25 → 0.26, 0.74 → 0.5) while the one it does
+    not keeps its own (1.5, 1.5), loss 1.0."""
+    low, high = np.zeros(2, np.float32), np.full(2, 2.0, np.float32)
+    search = (low, high, np.zeros(2, bool), swarm_settings(4, batched=True))
+    trial = _fit._Trial(jax.random.key(0), _Bowl(jax.random.key(1), np.float32([0.5, 1.5])))
+    p = jnp.asarray([[0.6, 1.0], [1.0, 0.5], [1.5, 1.5], [1.2, 2.0]], jnp.float32) / 2
+    trial.advance(0, search, 0, None)  # started, then given these personal bests
+    trial.swarm = eqx.tree_at(lambda w: (w.p, w.ps), trial.swarm, (p, trial.loss(2 * p)))
+    trial.history = [float(trial.swarm.best)]
+    trial.polish(lambda sim_key, best, start: (np.float32([best[0], 1.4]), 0.02), search)
+    expected = np.float32([[0.6, 1.4], [1.0, 1.4], [1.5, 1.5], [1.2, 1.4]]) / 2
+    np.testing.assert_allclose(trial.swarm.p, expected, rtol=1e-6)
+    np.testing.assert_allclose(trial.swarm.ps, [0.02, 0.26, 1.0, 0.5], rtol=1e-5)
+    assert trial.history == [float(trial.swarm.best)]
+
+
 def test_a_trial_stalls_when_its_best_gains_under_one_percent_over_ten_epochs():
     """The fast mode's stall rule: less than 1 % over the last 10 epochs (0.1 % ran a full fit's
     last trial 24 epochs longer for 0.4 % on other simulation keys); never before 10 epochs."""

@@ -346,10 +346,10 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     )
     # measured on 2 CPU cores: 0.24 s per agent and epoch at 256² on a slow day (0.13 on a fast
     # one: "at most" holds on either), a refinement step (polishes and the final refinement's
-    # starts) about 7 of those and each held-out key of the answer one, plus about 50 s of fixed
-    # cost (20 s when an earlier fit of this patch size left its compiled programs cached) and
-    # about 45 s more to build a layout that jface does not ship
-    refinements = (polishes + starts) * 7 * args.refine_steps
+    # starts) about 7 of those, each polish's sharing one per agent and each held-out key of the
+    # answer one, plus about 50 s of fixed cost (20 s when an earlier fit of this patch size left
+    # its compiled programs cached) and about 45 s more to build a layout that jface does not ship
+    refinements = (polishes + starts) * 7 * args.refine_steps + polishes * args.agents
     evaluations = total * args.agents + refinements + HELDOUT_KEYS
     d_levels = D_LEVELS[mode] if args.d_levels is None else max(2, args.d_levels)
     shipped = layout_shipped(patch.shape, tuple(args.d_range), args.steps, d_levels)

@@ -47,7 +47,14 @@ from jface._compilation import (
     write_arrays,
 )
 from jface.optim import PSOResult, TextureStats, texture_distance, texture_stats
-from jface.optim._pso import Swarm, swarm_epoch, swarm_evaluate, swarm_settings, swarm_start
+from jface.optim._pso import (
+    Swarm,
+    _keep_better,
+    swarm_epoch,
+    swarm_evaluate,
+    swarm_settings,
+    swarm_start,
+)
 from jface.optim._texture import _stats
 from jface.wrinkles._drawing import (
     BETA,
@@ -127,7 +134,7 @@ STALL_TOLERANCE, PATIENCE = 1e-2, 10
 INERTIA = {"fast": (0.4, 0.6, 0.95), "paper": (0.4, 0.6, 0.98)}
 #: Fast mode polishes every trial's best with the refinement after each rung of successive
 #: halving when a rung holds at least this many evaluations: one polish (up to 30 BFGS steps)
-#: costs up to about 210 evaluations.
+#: costs up to about 210 evaluations, and one of the swarm's when it gains (it is shared).
 POLISH_FROM = 300
 #: Swarms of fewer evaluations draw every agent with one program: the second size class saves
 #: about 0.06 s an evaluation but costs about 12 s of compile (256², two cores), so it repays
@@ -811,7 +818,8 @@ def fit_wrinkles(
             and the swarm stops when its best loss fell by less than 1 % over 10 epochs;
             when a rung holds :data:`POLISH_FROM` evaluations or more, every trial's best is
             refined (as at the end) after each of its rungs and, when that gains and stays in
-            the search box, rejoins its swarm as its best agent's personal best, so the race
+            the search box, rejoins its swarm as its best agent's personal best (its refined
+            entries also tried on every other personal best, kept where they gain), so the race
             compares refined answers (``progress`` saw the epoch's best before), and the last
             trial's stall is judged after each rung's polish; the epochs it leaves when it
             stalls buy more refinement starts, and the swarm's inertia decays faster than the
@@ -1086,11 +1094,15 @@ class _Trial:
 
     def polish(self, polish, search) -> None:
         """Make ``polish(sim_key, best, best_loss) → (params, loss)`` of the swarm's best its
-        best agent's personal best, when it is better and inside the search box (None: no-op);
-        the history's last entry becomes the new best."""
+        best agent's personal best, when it is better and inside the search box (None: no-op),
+        and try the entries the polish changed on every other agent's personal best (one
+        evaluation of the swarm), which keeps them where they gain; the history's last entry
+        becomes the new best. The polish refines the drawing parameters for the best agent's
+        trails; shared, they let the swarm compare the other agents' simulation parameters
+        with drawing parameters that suit trails, rather than with its own guesses."""
         if polish is None or self.swarm is None:
             return
-        low, high = search[:2]
+        low, high, _, settings = search
         w = self.swarm
         i = int(jnp.argmin(w.ps))
         best = np.asarray(w.best_params(low, high))
@@ -1099,7 +1111,12 @@ class _Trial:
         u = np.where(params == best, w.p[i], (np.asarray(params) - low) / (high - low))
         if not (loss < float(w.best) and np.all((u >= 0) & (u <= 1))):
             return
-        self.swarm = eqx.tree_at(lambda s: (s.p, s.ps), w, (w.p.at[i].set(u), w.ps.at[i].set(loss)))
+        w = eqx.tree_at(lambda s: (s.p, s.ps), w, (w.p.at[i].set(u), w.ps.at[i].set(loss)))
+        x = np.where(params != best, u, np.asarray(w.p)).astype(np.float32)
+        s, bad = swarm_evaluate(self.loss, low, high, x, settings)
+        p, ps = _keep_better(x, s, w.p, w.ps)
+        w = eqx.tree_at(lambda s: (s.p, s.ps, s.n_nonfinite), w, (p, ps, w.n_nonfinite + bad))
+        self.swarm = w
         self.history[-1] = float(self.swarm.best)
 
     def stalled(self) -> bool:
@@ -1175,7 +1192,8 @@ def fit_budget(
     mode: str = "fast",
 ) -> tuple[int, int, int]:
     """The most swarm epochs (each ``n_agents`` evaluations), polishes (refinements of a
-    trial's best, each at most about as dear as ``7 * refine_steps`` evaluations) and starts of the
+    trial's best, each at most about as dear as ``7 * refine_steps`` evaluations, and one
+    evaluation of the swarm that shares what it refined) and starts of the
     final refinement that :func:`fit_wrinkles` with these settings runs (fitting drawing
     parameters, as the default names do; without them nothing is refined): all the epochs in
     paper mode; in fast mode a field of trials halved after every rung, then the last trial on
