@@ -84,8 +84,8 @@ def register(subparsers) -> None:
         "--paper", action="store_true",
         help="the paper's procedure: every trial runs all --iters epochs, no early stop, the "
         "paper's inertia decay (default: off: trials by successive halving, each rung's bests "
-        "refined by gradient in full fits, stop when the best loss improves by less than 1 %% "
-        "over 10 epochs, a faster inertia decay)",
+        "refined by gradient in full fits and shared with their swarms, stop when the best "
+        "loss improves by less than 1 %% over 10 epochs, a faster inertia decay)",
     )  # fmt: skip
     parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
     parser.add_argument(
