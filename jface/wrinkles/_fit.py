@@ -1113,10 +1113,11 @@ class _Trial:
             return
         w = eqx.tree_at(lambda s: (s.p, s.ps), w, (w.p.at[i].set(u), w.ps.at[i].set(loss)))
         x = np.where(params != best, u, np.asarray(w.p)).astype(np.float32)
-        s, bad = swarm_evaluate(self.loss, low, high, x, settings)
-        p, ps = _keep_better(x, s, w.p, w.ps)
-        w = eqx.tree_at(lambda s: (s.p, s.ps, s.n_nonfinite), w, (p, ps, w.n_nonfinite + bad))
-        self.swarm = w
+        losses, bad = swarm_evaluate(self.loss, low, high, x, settings)
+        p, ps = _keep_better(x, losses, w.p, w.ps)
+        self.swarm = eqx.tree_at(
+            lambda s: (s.p, s.ps, s.n_nonfinite), w, (p, ps, w.n_nonfinite + bad)
+        )
         self.history[-1] = float(self.swarm.best)
 
     def stalled(self) -> bool:
