@@ -271,6 +271,13 @@ _HELDOUT_STREAM = 0x4E1D
 _LAYOUT_SEED = 0x5EED_A11D
 
 
+def heldout_keys(key: Array) -> Array:
+    """The :data:`HELDOUT_KEYS` simulation keys that score the answer of a fit with ``key``
+    besides its own (folded into its simulation key, whose split gives the trials' keys)."""
+    k_sim = jax.random.split(key)[0]
+    return jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), HELDOUT_KEYS)
+
+
 def layout_key() -> Array:
     """The key of every fit's pores and graphs. They are a fixed design of the fit, like a
     quadrature: the loss compares texture statistics, not pore positions, and the seed varies the
@@ -889,7 +896,6 @@ def fit_wrinkles(
     if refine_starts is not None:  # else counted after the swarm, from the epochs it left
         refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
     k_sim, k_swarm = jax.random.split(key)
-    heldout_keys = jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), HELDOUT_KEYS)
     # each new patch size compiles programs of its own: a process fitting many must not crash
     spare_memory_mappings()
     layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels)
@@ -983,7 +989,7 @@ def fit_wrinkles(
     image = answer.image
     if image is None:  # a start the refinement did not beat (or none refined): drawn here
         image = _fitted_map(sim_keys[t], answer.levels, refining)
-    heldout = _heldout(runs[t].loss, params, heldout_keys, search)
+    heldout = _heldout(runs[t].loss, params, heldout_keys(key), search)
     return WrinkleFit(
         answer.levels, answer.loss, swarm.loss, swarm, names, sim_keys[t], image,
         interrupted, epochs, refined_losses, t, heldout,
