@@ -277,12 +277,14 @@ def truth_heldout(target: np.ndarray, mode: str, seed: int, args) -> float:
     whole = _kept_layout(layout_key(), target.shape, D_RANGE, args.steps, d_levels).merged()
     layout = whole.narrowed(0)  # every α_d value in one class, as the fit's refinement draws
     stats = texture_stats(jnp.asarray(target))
+    keys = heldout_keys(jax.random.key(seed))
+    return float(np.mean([float(truth_loss(k, stats, layout)) for k in keys]))
 
-    @eqx.filter_jit
-    def loss(key):
-        return _SwarmLoss(key, stats, TRUTH, layout, PAPER_NAMES)._map(layout, TRUTH)
 
-    return float(np.mean([float(loss(k)) for k in heldout_keys(jax.random.key(seed))]))
+@eqx.filter_jit
+def truth_loss(key, stats, layout):
+    """The truth's loss drawn with ``key`` on ``layout`` (one program per layout's sizes)."""
+    return _SwarmLoss(key, stats, TRUTH, layout, PAPER_NAMES)._map(layout, TRUTH)
 
 
 def summary(name: str, size: int, runs: dict, modes) -> None:
