@@ -113,10 +113,8 @@ def test_heldout_losses_score_the_answer_with_other_simulation_keys(fit, target,
     k_sim = jax.random.split(jax.random.key(0))[0]
     keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), _fit.HELDOUT_KEYS)
     stats = texture_stats(target)
-    expected = [
-        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(fit.swarm.params[None])[0]
-        for k in keys
-    ]
+    answer = jnp.array([[getattr(fit.levels[0], n[2:]) for n in NAMES]], jnp.float32)
+    expected = [eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(answer)[0] for k in keys]
     # the fit scores in a batch of its agents, which reduces in another order than one agent
     # alone (up to 1e-4 of the loss)
     np.testing.assert_allclose(fit.heldout_losses, expected, rtol=5e-4)
@@ -269,9 +267,8 @@ def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layo
 def test_refinement_compiles_once_while_the_swarm_runs(target, layout, caplog):
     """The refinement's program is compiled ahead, in a background thread, for the types of the
     answer the swarm will give: the fit then finds it compiled (one compile, not in the main
-    thread). The answer's map comes from it (no drawing compiled besides, unless the answer is
-    an unrefined start), and its held-out losses are the refined answer's swarm losses with the
-    fit's held-out keys."""
+    thread; the coordinate search's answer is refined by it too). Its held-out losses are the
+    answer's swarm losses with the fit's held-out keys."""
     names = (*NAMES, "1.wrinkle_width")
     small = dict(SMALL, n_agents=3, n_epochs=1)
     # compiled here (not read from the persistent cache), each compile logged
@@ -290,10 +287,8 @@ def test_refinement_compiles_once_while_the_swarm_runs(target, layout, caplog):
     # one program for every start: the swarm's best and its two other agents' personal bests
     assert len(compiles) == 1 and compiles[0].threadName != "MainThread"
     assert float(fit.loss) <= float(fit.swarm_loss) and not fit.interrupted
-    assert len(fit.refined_losses) == 3 and float(fit.loss) == float(min(fit.refined_losses))
+    assert len(fit.refined_losses) == 3 and float(fit.loss) <= float(min(fit.refined_losses))
     assert float(fit.refined_losses[0]) <= float(fit.swarm_loss)
-    drawn = [r for r in caplog.records if "XLA compilation of jit(_fitted_map)" in r.getMessage()]
-    assert not drawn or float(fit.loss) == float(fit.swarm_loss)
     k_sim = jax.random.split(jax.random.key(1))[0]
     keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), _fit.HELDOUT_KEYS)
     answer = jnp.array([[getattr(fit.levels[0], n[2:]) for n in names]], jnp.float32)
@@ -315,6 +310,7 @@ def test_paper_mode_keeps_another_trials_answer_with_its_own_key(target, monkeyp
 
     monkeypatch.setattr(_fit, "_refine", refine)
     monkeypatch.setattr(_fit, "_refine_starts", lambda *a: 3)
+    monkeypatch.setattr(_fit, "_coordinate_search", None)  # the paper's procedure has none
     small = dict(SMALL, n_agents=3, n_epochs=1, refine_steps=2)
     fit = fit_wrinkles(jax.random.key(1), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
                        n_trials=2, mode="paper", **small)  # fmt: skip
@@ -347,6 +343,75 @@ def test_refinement_starts_are_the_finished_trials_bests_then_the_best_ones_next
         np.testing.assert_allclose(params, 2 * np.asarray(point))  # the caller's units
     assert [t for t, _, _ in _fit._starts(runs, [0, 2], low, high, 3)] == [0, 2, 0]
     assert len(_fit._starts(runs, [2], low, high, 0)) == 1
+
+
+def test_coordinate_search_hand_worked():
+    """A greedy pass over the fitted simulation parameters (level 1's α_θ, cyclic on [0, 2π),
+    and α_deposit on [0.01, 1]), steps of ±5 % and ±10 % of the range, the best step kept where
+    it gains. Loss: squared distance to α_θ 2.95 (axial: mod π) and α_deposit 0.62, plus terms
+    in α_d and a drawing parameter, which the search leaves alone. Pass 1: α_θ 0.1 → 0.1 − 0.1π
+    + 2π (wrapped; 0.023 from 2.95 against 0.29), α_deposit 0.5 → 0.599 (0.021 from 0.62;
+    0.6485 is 0.0285 off); pass 2 gains nothing from either, so the search stops there (4
+    batches of 4)."""
+    names = ("d", "1.theta", "1.deposit", "1.wrinkle_width", "fnoise")
+    low, high, cyclic = _fit._bounds(names, D_RANGE, {})
+    search = (low, high, cyclic, None)
+
+    def loss(p):
+        axial = np.abs((p[:, 1] - 2.95 + np.pi / 2) % np.pi - np.pi / 2)
+        return axial**2 + (p[:, 2] - 0.62) ** 2 + (p[:, 0] - 0.045) ** 2 + (p[:, 3] - 0.5) ** 2
+
+    seen = []
+
+    def losses_of(rows):
+        seen.append(rows.copy())
+        return loss(rows)
+
+    start = np.array([0.04, 0.1, 0.5, 0.3, 500.0])
+    params, value = _fit._coordinate_search(losses_of, start, loss(start[None])[0], names,
+                                            search, passes=3)  # fmt: skip
+    np.testing.assert_allclose(params, [0.04, 0.1 - 0.1 * np.pi + 2 * np.pi, 0.599, 0.3, 500])
+    assert value == pytest.approx(loss(params[None])[0])
+    assert len(seen) == 4 and all(r.shape == (4, 5) for r in seen)
+    moved = np.concatenate(seen)
+    assert np.all(moved[:, [0, 3, 4]] == start[[0, 3, 4]])  # only the simulation parameters
+    # one pass; near a bound only the steps inside the range (α_deposit 0.97: 0.871, 0.9205)
+    start = np.array([0.04, 3.0, 0.97, 0.3, 500.0])
+    seen.clear()
+    params, _ = _fit._coordinate_search(losses_of, start, 0.0, names, search, passes=1)
+    assert [len(r) for r in seen] == [4, 2] and np.all(params == start)  # nothing beats 0
+    np.testing.assert_allclose(seen[1][:, 2], [0.871, 0.9205])
+    assert _fit.coordinate_evaluations("fast") == 1 + 2 * 4 * 12
+    assert _fit.coordinate_evaluations("paper") == 0
+
+
+def test_fast_mode_ends_with_a_coordinate_search_from_the_refined_answer(
+    target, layout, monkeypatch
+):
+    """The search starts from the best refined start (its loss there the swarm program's, equal
+    to the refinement's up to the last bits); its answer, refined once more, is the fit's, with
+    the loss of the map the fit reports."""
+    search = _fit._coordinate_search
+    calls = []
+
+    def spy(losses_of, params, loss, *args):
+        calls.append((loss, search(losses_of, params, loss, *args)))
+        return calls[-1][-1]
+
+    monkeypatch.setattr(_fit, "_coordinate_search", spy)
+    small = dict(SMALL, n_agents=3, n_epochs=1)
+    fit = fit_wrinkles(jax.random.key(1), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
+                       n_trials=1, refine_steps=2, **small)  # fmt: skip
+    ((start_loss, (moved, loss)),) = calls
+    assert start_loss == pytest.approx(float(min(fit.refined_losses)), rel=1e-4)
+    assert loss < start_loss  # it gained here: 1 epoch of 3 agents leaves easy descents
+    assert float(fit.loss) <= loss and not fit.interrupted
+    assert float(fit.levels[0].deposit) == pytest.approx(moved[0], abs=1e-6)
+    assert float(fit.levels[0].theta) == pytest.approx(moved[1], abs=1e-6)
+    stats = texture_stats(target)
+    image = _fit._fitted_map(fit.sim_key, fit.levels, layout.merged().narrowed(0))
+    np.testing.assert_allclose(fit.fitted, image, atol=1e-5)
+    assert float(fit.loss) == pytest.approx(float(_fit._loss(image, stats)), rel=1e-4)
 
 
 def test_size_classes_give_the_whole_grids_losses(target, layout):
@@ -619,7 +684,7 @@ def test_epochs_the_stalled_race_left_buy_more_refinement_starts(target, monkeyp
                        n_trials=2, refine_steps=2, **small)  # fmt: skip
     assert fit.epochs_run == (1, 1) and fit_budget(5, 8, 2, refine_steps=2) == (9, 0, 1 + 2)
     assert _fit._refine_starts(5, 9, 2) == 1 and len(fit.refined_losses) == 1 + 2
-    assert float(fit.loss) == float(min(fit.refined_losses))
+    assert float(fit.loss) <= float(min(fit.refined_losses))
 
 
 @pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="Linux's memory mappings")

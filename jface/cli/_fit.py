@@ -33,7 +33,13 @@ from jface.wrinkles import (
     params_to_json,
     parse_patch_size,
 )
-from jface.wrinkles._fit import D_LEVELS, checked_target, layout_shipped
+from jface.wrinkles._fit import (
+    COORDINATE_PASSES,
+    D_LEVELS,
+    checked_target,
+    coordinate_evaluations,
+    layout_shipped,
+)
 
 
 def register(subparsers) -> None:
@@ -346,11 +352,14 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     )
     # measured on 2 CPU cores: 0.24 s per agent and epoch at 256² on a slow day (0.13 on a fast
     # one: "at most" holds on either), a refinement step (polishes and the final refinement's
-    # starts) about 7 of those, each polish's sharing one per agent and each held-out key of the
-    # answer one, plus about 50 s of fixed cost (20 s when an earlier fit of this patch size left
-    # its compiled programs cached) and about 45 s more to build a layout that jface does not ship
-    refinements = (polishes + starts) * 7 * args.refine_steps + polishes * args.agents
-    evaluations = total * args.agents + refinements + HELDOUT_KEYS
+    # starts, and the coordinate search's answer) about 7 of those, each polish's sharing one per
+    # agent and each held-out key of the answer one, plus about 50 s of fixed cost (20 s when an
+    # earlier fit of this patch size left its compiled programs cached) and about 45 s more to
+    # build a layout that jface does not ship
+    refined = polishes + starts + bool(COORDINATE_PASSES[mode])
+    refinements = refined * 7 * args.refine_steps + polishes * args.agents
+    searched = coordinate_evaluations(mode)
+    evaluations = total * args.agents + refinements + searched + HELDOUT_KEYS
     d_levels = D_LEVELS[mode] if args.d_levels is None else max(2, args.d_levels)
     shipped = layout_shipped(patch.shape, tuple(args.d_range), args.steps, d_levels)
     minutes = (evaluations * 0.24 * patch.size / 256**2 + 50 + 45 * (not shipped)) / 60
