@@ -385,6 +385,35 @@ def test_coordinate_search_hand_worked():
     assert _fit.coordinate_evaluations("paper") == 0
 
 
+class _RowLoss(eqx.Module):
+    """A batched loss that gives each drawable agent its row's index (NaN elsewhere), with a
+    stand-in for a mesh of ``devices`` devices."""
+
+    devices: int = eqx.field(static=True)
+
+    @property
+    def mesh(self):
+        return None if self.devices == 1 else type("Mesh", (), {"size": self.devices})()
+
+    def __call__(self, units):
+        rows = jnp.arange(units.shape[0], dtype=jnp.float32)
+        return jnp.where(jnp.all(jnp.isfinite(units), axis=1), rows, jnp.nan)
+
+
+@pytest.mark.parametrize(
+    ("agents", "devices", "slots"),
+    [(50, 1, [0, 1, 2, 3]), (50, 2, [0, 25, 1, 26]), (5, 2, [0, 3, 1, 4, 2, 0, 3])],
+)
+def test_agent_losses_deal_the_agents_to_every_devices_share(agents, devices, slots):
+    """A sharded swarm loss evaluates each device's rows side by side: the agents scored alone
+    (held-out keys, the coordinate search) go to the devices in turn (rows 0, 25, 1, 26 of 50 on
+    two devices; 5 rows on two: shares 0-2 and 3-4), more than a swarm's in further calls."""
+    low, high = np.zeros(2, np.float32), np.ones(2, np.float32)
+    search = (low, high, np.zeros(2, bool), swarm_settings(agents, batched=True))
+    rows = np.full((len(slots), 2), 0.5)
+    np.testing.assert_array_equal(_fit._agent_losses(_RowLoss(devices), rows, search), slots)
+
+
 def test_fast_mode_ends_with_a_coordinate_search_from_the_refined_answer(
     target, layout, monkeypatch
 ):

@@ -1058,19 +1058,25 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     return jnp.asarray(losses)
 
 
-def _agent_losses(loss: _SwarmLoss, rows, search) -> np.ndarray:
+def _agent_losses(loss: Callable, rows, search) -> np.ndarray:
     """Losses of the agents ``rows`` (``(k, P)`` or one ``(P,)``, in the fit's units; +inf
-    where undrawable) by a trial's compiled swarm loss: the agents in its first rows, the other
-    rows undrawable (non-finite), which cost nothing."""
+    where undrawable) by a trial's compiled swarm loss: the agents dealt in turn to the shares of
+    its devices (a sharded loss evaluates them side by side), the other rows undrawable
+    (non-finite), which cost nothing."""
     low, high, _, settings = search
+    mesh = getattr(loss, "mesh", None)  # a sharded loss's devices
+    n, devices = settings.n_agents, 1 if mesh is None else mesh.size
+    size = -(-n // devices)  # rows per device (the last share padded)
+    slots = [d * size + i for i in range(size) for d in range(devices) if d * size + i < n]
     rows = np.atleast_2d(np.asarray(rows, np.float64))
     losses = []
-    for first in range(0, len(rows), settings.n_agents):
-        share = rows[first : first + settings.n_agents]
-        x = np.full((settings.n_agents, low.shape[0]), np.nan, np.float32)
-        x[: len(share)] = (share - low) / (high - low)
+    for first in range(0, len(rows), n):
+        batch = rows[first : first + n]
+        taken = slots[: len(batch)]
+        x = np.full((n, low.shape[0]), np.nan, np.float32)
+        x[taken] = (batch - low) / (high - low)
         s, _ = swarm_evaluate(loss, low, high, jnp.asarray(x), settings)
-        losses.append(np.asarray(s)[: len(share)])
+        losses.append(np.asarray(s)[taken])
     return np.concatenate(losses)
 
 
