@@ -151,7 +151,9 @@ SHARD_FROM = SPLIT_FROM
 #: five fast fits' answers (256², `known-1` seeds 0-2, `gravel` seed 1, `synthesized` seed 0),
 #: one pass lowered every own-key loss by 7-12 % and the mean loss on 8 held-out keys in four of
 #: five (0.88-1.04x); a second gained more on `gravel` (0.83x own key, 0.88x held out) and
-#: nothing on `known-1` seed 1. A pass costs up to 48 evaluations of the default names (5-8 s).
+#: nothing on `known-1` seed 1. A pass costs up to 48 evaluations of the default names. In the
+#: default fits (9 of `known-1`, `gravel`, `synthesized`) it lowered the own-key loss to
+#: 0.79-0.92x for about 20-30 s (docs/wrinkles.md).
 COORDINATE_PASSES = {"fast": 2, "paper": 0}
 #: The coordinate search's steps from a parameter's current value, as shares of its search range.
 COORDINATE_STEPS = (-0.1, -0.05, 0.05, 0.1)
