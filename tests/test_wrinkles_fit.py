@@ -525,9 +525,11 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     # (7 evaluations a BFGS step, 210 for the default 30): up to 4 within a tenth of the evaluations
     # (none extra in an exploratory fit of 40 nor in one of 39 × 20 = 780, one with 10 steps; one in
     # 136 × 24 = 3,264), and one more for each start's cost in the epochs after the race, which
-    # a last trial that stalls there leaves unspent (76 × 50 = 3,800 evaluations: 18 more)
-    assert fit_budget() == (136, 12, 4 + 18) and fit_budget(24) == (136, 0, 2 + 8)
-    assert fit_budget(25) == (136, 12, 2 + 9) and fit_budget(50, refine_steps=10) == (136, 12, 58)
+    # a last trial that stalls there leaves unspent (76 × 50 = 3,800 evaluations: 18 more). The
+    # last trial of 100 epochs stops at FAST_EPOCHS = 48: it runs 24 more after the race's 24, the
+    # fit at most 36 + 24 + 24 = 84 epochs in 7 rungs of 12, its budget still 136 epochs
+    assert fit_budget() == (84, 7, 4 + 18) and fit_budget(24) == (84, 0, 2 + 8)
+    assert fit_budget(25) == (84, 7, 2 + 9) and fit_budget(50, refine_steps=10) == (84, 7, 58)
     assert fit_budget(150, 21, 3) == (27, 14, 2 + 12)
     assert fit_budget(150, 20, 1) == (20, 10, 2 + 14)
     assert fit_budget(10, 2, 16, refine_steps=0) == (30, 0, 1)
@@ -592,6 +594,37 @@ def test_polished_bests_join_their_swarms_and_the_race():
     assert trial.swarm is before[0]
 
 
+def test_the_last_trial_stops_at_fast_epochs_and_leaves_the_rest_to_refinement_starts(
+    monkeypatch,
+):
+    """A last trial that never stalls (a tolerance below any gain) runs to FAST_EPOCHS, here 7
+    of 16, not to n_epochs: 3 trials × 2 epochs, 2 × 2, then the winner on to 7 (a rung of 2,
+    then one cut at 7), polished after each rung, as :func:`fit_budget` counts. The budget's
+    other 9 epochs (of 6 + 4 + 12 = 22) are left unspent: they buy refinement starts."""
+    monkeypatch.setattr(_fit, "FAST_EPOCHS", 7)
+    monkeypatch.setattr(_fit, "STALL_TOLERANCE", -1.0)
+    monkeypatch.setattr(_fit, "POLISH_FROM", 1)
+    low, high = np.zeros(2, np.float32), np.full(2, 2.0, np.float32)
+    search = (low, high, np.zeros(2, bool), swarm_settings(4, batched=True))
+    keys = jax.random.split(jax.random.key(0), 3)
+    centre = jnp.float32([0.5, 1.5])
+    runs = [_fit._Trial(k, _Bowl(jax.random.key(t), centre, 1.0)) for t, k in enumerate(keys)]
+    polished = []
+
+    def polish(sim_key, best, start):  # no gain: the swarm goes on as it was
+        polished.append(sim_key)
+        return best, start
+
+    (t,) = _fit._halve(runs, 16, search, None, polish)
+    epochs = [len(r.history) - 1 for r in runs]
+    assert sorted(epochs) == [2, 4, 7] and epochs[t] == 7 and not runs[t].stalled()
+    assert len(polished) == 3 + 2 + 2
+    assert fit_budget(4, 16, 3, refine_steps=1)[:2] == (sum(epochs), len(polished)) == (13, 7)
+    assert _fit._race_epochs(3, 16) == (22, 12, 13) and _fit._budget_epochs("fast", 3, 16) == 22
+    # 9 unspent epochs of 4 agents: 5 starts' worth at 7 evaluations each, after 2 within a tenth
+    assert _fit._refine_starts(4, 22, 1, 22 - sum(epochs)) == 2 + 5
+
+
 def test_a_gaining_polish_shares_its_refined_entries_with_every_personal_best():
     """Hand-worked on the bowl around (0.5, 1.5): the best agent (0.6, 1.0) is polished to
     (0.6, 1.4); the changed entry, 1.4, is tried on every other personal best, and the agents
@@ -651,7 +684,7 @@ def test_a_stalled_trial_goes_on_after_a_gaining_polish_and_stops_after_one_that
     halved = 0.5 * run.history[revived - 1]
     assert run.history[revived] == pytest.approx(halved, rel=_fit.STALL_TOLERANCE)
     assert run.history[revived] == run.history[-1]  # nothing beat the polished best since
-    assert len(polished) == -(-epochs // 10) <= fit_budget(30, 80, 1, refine_steps=1)[1] == 8
+    assert len(polished) == -(-epochs // 10) <= fit_budget(30, 80, 1, refine_steps=1)[1] == 5
 
 
 def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):

@@ -133,6 +133,13 @@ STALL_TOLERANCE, PATIENCE = 1e-2, 10
 #: 0.98 and 0.89-1.19x on the same 8 held-out keys; over 12 fits of six targets the median
 #: ratios were 0.93 and 0.96 (`brick` seed 0: 1.74x, docs/wrinkles.md).
 INERTIA = {"fast": (0.4, 0.6, 0.95), "paper": (0.4, 0.6, 0.98)}
+#: Fast mode's last trial runs at most this many epochs (fewer where ``n_epochs`` is smaller);
+#: the epochs of the race's budget past them buy refinement starts, as a stall's do. By then its
+#: inertia (:data:`INERTIA`) has come within 13 % of its floor and the swarm has contracted. In
+#: 18 default fits (256², six targets, seeds 0-2) the eight winners that ran past 48 epochs
+#: lowered their swarm's best by 0-4.2 % (median 0.8 %) in the rung to 60 and by 0-0.4 % in the
+#: three rungs to 72 run, each rung about 60-70 s of a fit's 10 min.
+FAST_EPOCHS = 48
 #: Fast mode polishes every trial's best with the refinement after each rung of successive
 #: halving when a rung holds at least this many evaluations: one polish (up to 30 BFGS steps)
 #: costs up to about 210 evaluations, and one of the swarm's when it gains (it is shared).
@@ -829,13 +836,15 @@ def fit_wrinkles(
             (0: none; default: :data:`REFINE_STEPS` of the mode).
         refine_starts: starts of that refinement, at most (default: one, more up to
             :data:`REFINE_STARTS` while they cost at most a tenth of the swarm's evaluations,
-            and one more for each start's cost in the epochs of the race that its stalled
-            last trial left unspent; the third number of :func:`fit_budget` is the most).
+            and one more for each start's cost in the epochs of the race's budget that its
+            last trial left unspent, stalling or stopping at :data:`FAST_EPOCHS`; the third
+            number of :func:`fit_budget` is the most).
         d_levels: α_d values (evenly spaced over ``d_range``) whose pores and graphs are built
             once (default: :data:`D_LEVELS` of the mode); an agent simulates with the nearest,
             and that value is what the result reports.
         mode: ``"fast"`` (default): the trials race by successive halving (each runs
-            ``n_epochs // 8`` epochs, the better half goes on; the last runs up to ``n_epochs``)
+            ``n_epochs // 8`` epochs, the better half goes on; the last runs up to ``n_epochs``,
+            at most :data:`FAST_EPOCHS`)
             and the swarm stops when its best loss fell by less than 1 % over 10 epochs;
             when a rung holds :data:`POLISH_FROM` evaluations or more, every trial's best is
             refined (as at the end) after each of its rungs and, when that gains and stays in
@@ -909,7 +918,6 @@ def fit_wrinkles(
     settings = swarm_settings(n_agents, batched=True, inertia=INERTIA[mode])
     evaluations = n_agents * (n_epochs + 1) * n_trials
     mesh = _agent_mesh(devices, n_agents, evaluations)
-    budget = fit_budget(n_agents, n_epochs, n_trials, refine_steps=refine_steps, mode=mode)
     if refine_starts is not None:  # else counted after the swarm, from the epochs it left
         refine_starts = _checks.integer(refine_starts, "refine_starts", low=1)
     k_sim, k_swarm = jax.random.split(key)
@@ -985,8 +993,9 @@ def fit_wrinkles(
     swarm = _result(runs, low, high)
     epochs = tuple(len(r.history) - 1 for r in runs if r.swarm is not None)
     if refine_starts is None:  # the swarm's unspent epochs go to more starts
-        unspent = budget[0] - sum(epochs)
-        refine_starts = _refine_starts(settings.n_agents, budget[0], refine_steps, unspent)
+        planned = _budget_epochs(mode, n_trials, n_epochs)
+        unspent = planned - sum(epochs)
+        refine_starts = _refine_starts(settings.n_agents, planned, refine_steps, unspent)
     answers = []  # (trial, parameters, refined) of each start
     if not interrupted:
         try:
@@ -1231,15 +1240,16 @@ class _Trial:
 
 def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> list[int]:
     """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs, the better half
-    goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all, stopping
-    early when it stalls. With ``polish``, every trial's best is polished after each of its
-    rungs, before the trials are compared, and the last trial runs whole rungs (the last one
-    cut at ``n_epochs``), stopping when it is still stalled after a rung's polish: a trial runs
-    ``ceil(epochs / rung)`` polishes. Returns the last trial (as a list: the trials that ran to
-    their end). The epochs it leaves when it stalls go to refinement starts
+    goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all (at most
+    :data:`FAST_EPOCHS`), stopping early when it stalls. With ``polish``, every trial's best is
+    polished after each of its rungs, before the trials are compared, and the last trial runs
+    whole rungs (the last one cut at that limit), stopping when it is still stalled after a
+    rung's polish: a trial runs ``ceil(epochs / rung)`` polishes. Returns the last trial (as a
+    list: the trials that ran to their end). The epochs it leaves of ``n_epochs`` (when it
+    stalls, and past the limit) go to refinement starts
     (:func:`_refine_starts`): running the trials it beat on with them made 17 default fits
     take 1.45x as long (median) for the same median loss (docs/wrinkles.md)."""
-    rung = _rung(n_epochs)
+    rung, last = _rung(n_epochs), min(n_epochs, FAST_EPOCHS)
     alive = list(range(len(runs)))
     while len(alive) > 1:
         for t in alive:
@@ -1249,21 +1259,29 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     (t,) = alive
     # a polishing fit runs whole rungs and judges its stall after the rung's polish (one that
     # gains sends the swarm on from the polished best)
-    while (done := len(runs[t].history) - 1) < n_epochs and not runs[t].stalled():
-        runs[t].advance(min(rung, n_epochs - done), search, t, progress, stall=polish is None)
+    while (done := len(runs[t].history) - 1) < last and not runs[t].stalled():
+        runs[t].advance(min(rung, last - done), search, t, progress, stall=polish is None)
         runs[t].polish(polish, search)
     return [t]
 
 
-def _race_epochs(n_trials: int, n_epochs: int) -> tuple[int, int]:
-    """Epochs of every trial of the fast mode's race together, at most (the halved field's
-    rungs, then the last trial's rest up to ``n_epochs``), and that rest."""
+def _race_epochs(n_trials: int, n_epochs: int) -> tuple[int, int, int]:
+    """Epochs of every trial of the fast mode's race together by its budget (the halved field's
+    rungs, then the last trial's rest up to ``n_epochs``: what the race leaves of these buys
+    refinement starts), that rest, and the most the race runs (the rest up to
+    :data:`FAST_EPOCHS`)."""
     rung, epochs, done = _rung(n_epochs), 0, 0
     while n_trials > 1:
         epochs, done = epochs + n_trials * rung, done + rung
         n_trials = -(-n_trials // 2)
     rest = max(0, n_epochs - done)
-    return epochs + rest, rest
+    return epochs + rest, rest, epochs + max(0, min(n_epochs, FAST_EPOCHS) - done)
+
+
+def _budget_epochs(mode: str, n_trials: int, n_epochs: int) -> int:
+    """The epochs of a fit's budget, every trial's together: what its unspent epochs are
+    counted from (:func:`_refine_starts`)."""
+    return n_trials * n_epochs if mode == "paper" else _race_epochs(n_trials, n_epochs)[0]
 
 
 def _refine_starts(n_agents: int, epochs: int, refine_steps: int, unspent: int = 0) -> int:
@@ -1302,10 +1320,11 @@ def fit_budget(
     final refinement that :func:`fit_wrinkles` with these settings runs (fitting drawing
     parameters, as the default names do; without them nothing is refined): all the epochs in
     paper mode; in fast mode a field of trials halved after every rung, then the last trial on
-    to ``n_epochs`` (fewer when it stalls). The starts: one, more (up to
-    :data:`REFINE_STARTS`) while the extra ones cost at most a tenth of the epochs'
-    evaluations, and in fast mode one more for each start's cost in the epochs that a stalled
-    last trial left unspent (the most: all after the race)."""
+    to ``n_epochs``, at most :data:`FAST_EPOCHS` (fewer when it stalls). The starts: one, more
+    (up to :data:`REFINE_STARTS`) while the extra ones cost at most a tenth of the budget's
+    evaluations (the race up to ``n_epochs``), and in fast mode one more for each start's cost
+    in the budget's epochs that the last trial left unspent (the most: all after the race,
+    when it stalls there)."""
     mode = _checks.choice(mode, "mode", ("fast", "paper"))
     n_agents = _checks.integer(n_agents, "n_agents", low=3)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
@@ -1314,14 +1333,14 @@ def fit_budget(
     refine_steps = _checks.integer(refine_steps, "refine_steps", low=0)
     polishes, rest = 0, 0
     if mode == "paper":
-        epochs = n_trials * n_epochs
+        budget = epochs = n_trials * n_epochs
     else:
-        epochs, rest = _race_epochs(n_trials, n_epochs)
+        budget, rest, epochs = _race_epochs(n_trials, n_epochs)
         if _polishes(mode, refine_steps, n_agents, n_epochs):
-            # one after every rung (the last trial's last cut at n_epochs)
+            # one after every rung (the last trial's last cut at its limit)
             polishes = -(-epochs // _rung(n_epochs))
     # the most unspent epochs: the last trial stalled at the end of the race
-    return epochs, polishes, _refine_starts(n_agents, epochs, refine_steps, rest)
+    return epochs, polishes, _refine_starts(n_agents, budget, refine_steps, rest)
 
 
 def _starts(runs: list[_Trial], finished: list[int], low, high, n: int):
