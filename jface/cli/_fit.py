@@ -91,7 +91,7 @@ def register(subparsers) -> None:
         help="the paper's procedure: every trial runs all --iters epochs, no early stop, the "
         "paper's inertia decay (default: off: trials by successive halving, each rung's bests "
         "refined by gradient in full fits and shared with their swarms, stop when the best "
-        "loss improves by less than 1 %% over 10 epochs, a faster inertia decay)",
+        "loss improves by less than 1 %% over 10 epochs or after 48, a faster inertia decay)",
     )  # fmt: skip
     parser.add_argument("--steps", type=int, default=50, help="simulation steps (default: 50)")
     parser.add_argument(
