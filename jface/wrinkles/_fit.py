@@ -137,10 +137,10 @@ INERTIA = {"fast": (0.4, 0.6, 0.95), "paper": (0.4, 0.6, 0.98)}
 #: the epochs of the race's budget past them buy refinement starts, as a stall's do. By then its
 #: inertia (:data:`INERTIA`) has come within 13 % of its floor and the swarm has contracted. In
 #: 18 default fits (256², six targets, seeds 0-2) the eight winners that ran past 48 epochs
-#: lowered their swarm's best by 0-4.2 % (median 0.8 %) in the rung to 60 and by 0-0.4 % in the
-#: three rungs to 72 run, each rung about 60-70 s of a fit's 10 min. With it `gravel`'s fits
-#: (seeds 0-2) took 638, 582 and 589 s on a slow day, at 1.00, 0.99 and 1.00x their own-key
-#: loss without it (docs/wrinkles.md).
+#: lowered their swarm's best by 0-4.2 % (median 0.8 %) in the rung to 60, and the three that
+#: ran on to 72 by 0-0.4 % in that rung; a rung costs about 60-70 s of a fit's 10 min. With
+#: it `gravel`'s fits (seeds 0-2) took 638, 582 and 589 s on a slow day, at 1.00, 0.99 and
+#: 1.00x their own-key loss without it (docs/wrinkles.md).
 FAST_EPOCHS = 48
 #: Fast mode polishes every trial's best with the refinement after each rung of successive
 #: halving when a rung holds at least this many evaluations: one polish (up to 30 BFGS steps)
