@@ -717,9 +717,9 @@ def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
         solved.append((bits(sim_key), float(start)))
         return _refine(sim_key, levels, start, *args)
 
-    def polish(run, *args):
+    def polish(run, *args, **kwargs):
         before = run.history[-1]
-        real_polish(run, *args)
+        real_polish(run, *args, **kwargs)
         polishes.append((bits(run.loss.key), len(run.history) - 1, before, run.history[-1]))
 
     real_polish = _fit._Trial.polish
