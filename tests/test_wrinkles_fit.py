@@ -609,36 +609,27 @@ def test_the_last_trial_stops_at_fast_epochs_and_leaves_the_rest_to_refinement_s
     keys = jax.random.split(jax.random.key(0), 3)
     centre = jnp.float32([0.5, 1.5])
     runs = [_fit._Trial(k, _Bowl(jax.random.key(t), centre, 1.0)) for t, k in enumerate(keys)]
-    polished, shared = [], []
+    polished = []
 
     def polish(sim_key, best, start):  # no gain: the swarm goes on as it was
         polished.append(sim_key)
         return best, start
 
-    def trial_polish(trial, polish, search, share=True):
-        shared.append(share)
-        real_polish(trial, polish, search, share)
-
-    real_polish = _fit._Trial.polish
-    monkeypatch.setattr(_fit._Trial, "polish", trial_polish)
     (t,) = _fit._halve(runs, 16, search, None, polish)
     epochs = [len(r.history) - 1 for r in runs]
     assert sorted(epochs) == [2, 4, 7] and epochs[t] == 7 and not runs[t].stalled()
     assert len(polished) == 3 + 2 + 2
-    # what a polish refined is shared only once one trial is left
-    assert shared == [False] * (3 + 2) + [True] * 2
     assert fit_budget(4, 16, 3, refine_steps=1)[:2] == (sum(epochs), len(polished)) == (13, 7)
     assert _fit._race_epochs(3, 16) == (22, 12, 13) and _fit._budget_epochs("fast", 3, 16) == 22
     # 9 unspent epochs of 4 agents: 5 starts' worth at 7 evaluations each, after 2 within a tenth
     assert _fit._refine_starts(4, 22, 1, 22 - sum(epochs)) == 2 + 5
 
 
-@pytest.mark.parametrize("share", [True, False])
-def test_a_gaining_polish_shares_its_refined_entries_with_every_personal_best(share):
+def test_a_gaining_polish_shares_its_refined_entries_with_every_personal_best():
     """Hand-worked on the bowl around (0.5, 1.5): the best agent (0.6, 1.0) is polished to
-    (0.6, 1.4); shared, the changed entry, 1.4, is tried on every other personal best, and the
-    agents it brings nearer the centre take it (losses 1.25 → 0.26, 0.74 → 0.5) while the one
-    it does not keeps its own (1.5, 1.5), loss 1.0. Not shared, only the best agent changes."""
+    (0.6, 1.4); the changed entry, 1.4, is tried on every other personal best, and the agents
+    it brings nearer the centre take it (losses 1.25 → 0.26, 0.74 → 0.5) while the one it does
+    not keeps its own (1.5, 1.5), loss 1.0."""
     low, high = np.zeros(2, np.float32), np.full(2, 2.0, np.float32)
     search = (low, high, np.zeros(2, bool), swarm_settings(4, batched=True))
     trial = _fit._Trial(jax.random.key(0), _Bowl(jax.random.key(1), np.float32([0.5, 1.5])))
@@ -646,17 +637,11 @@ def test_a_gaining_polish_shares_its_refined_entries_with_every_personal_best(sh
     trial.advance(0, search, 0, None)  # started, then given these personal bests
     trial.swarm = eqx.tree_at(lambda w: (w.p, w.ps), trial.swarm, (p, trial.loss(2 * p)))
     trial.history = [float(trial.swarm.best)]
-    polish = lambda sim_key, best, start: (np.float32([best[0], 1.4]), 0.02)  # noqa: E731
-    trial.polish(polish, search, share=share)
-    if share:
-        expected = np.float32([[0.6, 1.4], [1.0, 1.4], [1.5, 1.5], [1.2, 1.4]]) / 2
-        losses = [0.02, 0.26, 1.0, 0.5]
-    else:
-        expected = np.float32([[0.6, 1.4], [1.0, 0.5], [1.5, 1.5], [1.2, 2.0]]) / 2
-        losses = [0.02, 1.25, 1.0, 0.74]
+    trial.polish(lambda sim_key, best, start: (np.float32([best[0], 1.4]), 0.02), search)
+    expected = np.float32([[0.6, 1.4], [1.0, 1.4], [1.5, 1.5], [1.2, 1.4]]) / 2
     np.testing.assert_allclose(trial.swarm.p, expected, rtol=1e-6)
-    np.testing.assert_allclose(trial.swarm.ps, losses, rtol=1e-5)
-    assert trial.history == [float(trial.swarm.best)] == [np.float32(0.02)]
+    np.testing.assert_allclose(trial.swarm.ps, [0.02, 0.26, 1.0, 0.5], rtol=1e-5)
+    assert trial.history == [float(trial.swarm.best)]
 
 
 def test_a_trial_stalls_when_its_best_gains_under_one_percent_over_ten_epochs():
@@ -717,9 +702,9 @@ def test_fast_mode_polishes_each_rungs_bests(target, monkeypatch):
         solved.append((bits(sim_key), float(start)))
         return _refine(sim_key, levels, start, *args)
 
-    def polish(run, *args, **kwargs):
+    def polish(run, *args):
         before = run.history[-1]
-        real_polish(run, *args, **kwargs)
+        real_polish(run, *args)
         polishes.append((bits(run.loss.key), len(run.history) - 1, before, run.history[-1]))
 
     real_polish = _fit._Trial.polish

@@ -353,8 +353,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     # measured on 2 CPU cores: 0.24 s per agent and epoch at 256² on a slow day (0.13 on a fast
     # one: "at most" holds on either), a refinement step (polishes and the final refinement's
     # starts, and the coordinate search's answer) about 7 of those, each polish's sharing one per
-    # agent (counted for every polish, though only the last trial's share: at most) and each
-    # held-out key of the answer one, plus about 50 s of fixed cost (20 s when an
+    # agent and each held-out key of the answer one, plus about 50 s of fixed cost (20 s when an
     # earlier fit of this patch size left its compiled programs cached) and about 45 s more to
     # build a layout that jface does not ship
     refined = polishes + starts + bool(COORDINATE_PASSES[mode])

@@ -144,8 +144,7 @@ INERTIA = {"fast": (0.4, 0.6, 0.95), "paper": (0.4, 0.6, 0.98)}
 FAST_EPOCHS = 48
 #: Fast mode polishes every trial's best with the refinement after each rung of successive
 #: halving when a rung holds at least this many evaluations: one polish (up to 30 BFGS steps)
-#: costs up to about 210 evaluations, and once one trial is left one of the swarm's when it
-#: gains (it is shared).
+#: costs up to about 210 evaluations, and one of the swarm's when it gains (it is shared).
 POLISH_FROM = 300
 #: Swarms of fewer evaluations draw every agent with one program: the second size class saves
 #: about 0.06 s an evaluation but costs about 12 s of compile (256², two cores), so it repays
@@ -851,9 +850,8 @@ def fit_wrinkles(
             and the swarm stops when its best loss fell by less than 1 % over 10 epochs;
             when a rung holds :data:`POLISH_FROM` evaluations or more, every trial's best is
             refined (as at the end) after each of its rungs and, when that gains and stays in
-            the search box, rejoins its swarm as its best agent's personal best (once one
-            trial is left, its refined entries are also tried on every other personal best,
-            kept where they gain), so the race
+            the search box, rejoins its swarm as its best agent's personal best (its refined
+            entries also tried on every other personal best, kept where they gain), so the race
             compares refined answers (``progress`` saw the epoch's best before), and the last
             trial's stall is judged after each rung's polish; the epochs it leaves when it
             stalls buy more refinement starts, and the swarm's inertia decays faster than the
@@ -1209,15 +1207,14 @@ class _Trial:
             if progress is not None:
                 progress(index, len(self.history) - 1, self.history[-1])
 
-    def polish(self, polish, search, share: bool = True) -> None:
+    def polish(self, polish, search) -> None:
         """Make ``polish(sim_key, best, best_loss) → (params, loss)`` of the swarm's best its
         best agent's personal best, when it is better and inside the search box (None: no-op),
-        and with ``share`` try the entries the polish changed on every other agent's personal
-        best (one evaluation of the swarm), which keeps them where they gain; the history's
-        last entry becomes the new best. The polish refines the drawing parameters for the best
-        agent's trails; shared, they let the swarm compare the other agents' simulation
-        parameters with drawing parameters that suit trails, rather than with its own
-        guesses."""
+        and try the entries the polish changed on every other agent's personal best (one
+        evaluation of the swarm), which keeps them where they gain; the history's last entry
+        becomes the new best. The polish refines the drawing parameters for the best agent's
+        trails; shared, they let the swarm compare the other agents' simulation parameters
+        with drawing parameters that suit trails, rather than with its own guesses."""
         if polish is None or self.swarm is None:
             return
         low, high, _, settings = search
@@ -1230,10 +1227,6 @@ class _Trial:
         if not (loss < float(w.best) and np.all((u >= 0) & (u <= 1))):
             return
         w = eqx.tree_at(lambda s: (s.p, s.ps), w, (w.p.at[i].set(u), w.ps.at[i].set(loss)))
-        if not share:
-            self.swarm = w
-            self.history[-1] = float(w.best)
-            return
         x = np.where(params != best, u, np.asarray(w.p)).astype(np.float32)
         losses, bad = swarm_evaluate(self.loss, low, high, x, settings)
         p, ps = _keep_better(x, losses, w.p, w.ps)
@@ -1251,22 +1244,19 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     """Successive halving: every trial runs a rung of ``n_epochs // 8`` epochs, the better half
     goes on to the next rung, and the last one runs up to ``n_epochs`` epochs in all (at most
     :data:`FAST_EPOCHS`), stopping early when it stalls. With ``polish``, every trial's best is
-    polished after each of its rungs, before the trials are compared, alone: what a polish
-    refined is shared with the other personal bests (:meth:`_Trial.polish`) only once one
-    trial is left. Shared during the halving, it settled `known-1`'s race on a wrong
-    α_deposit in its first rung; never shared, `synthesized`'s own-key loss rose 1.22x
-    (medians of 3 seeds, docs/wrinkles.md). The last trial runs whole rungs (the last one cut
-    at that limit), stopping when it is still stalled after a rung's polish: a trial runs
-    ``ceil(epochs / rung)`` polishes. Returns the last trial (as a list: the trials that ran to
-    their end). The epochs it leaves of ``n_epochs`` (when it stalls, and past the limit) go to
-    refinement starts (:func:`_refine_starts`): running the trials it beat on with them made
-    17 default fits take 1.45x as long (median) for the same median loss (docs/wrinkles.md)."""
+    polished after each of its rungs, before the trials are compared, and the last trial runs
+    whole rungs (the last one cut at that limit), stopping when it is still stalled after a
+    rung's polish: a trial runs ``ceil(epochs / rung)`` polishes. Returns the last trial (as a
+    list: the trials that ran to their end). The epochs it leaves of ``n_epochs`` (when it
+    stalls, and past the limit) go to refinement starts
+    (:func:`_refine_starts`): running the trials it beat on with them made 17 default fits
+    take 1.45x as long (median) for the same median loss (docs/wrinkles.md)."""
     rung, last = _rung(n_epochs), min(n_epochs, FAST_EPOCHS)
     alive = list(range(len(runs)))
     while len(alive) > 1:
         for t in alive:
             runs[t].advance(rung, search, t, progress)
-            runs[t].polish(polish, search, share=False)
+            runs[t].polish(polish, search)
         alive = sorted(alive, key=lambda t: runs[t].history[-1])[: -(-len(alive) // 2)]
     (t,) = alive
     # a polishing fit runs whole rungs and judges its stall after the rung's polish (one that
@@ -1327,8 +1317,8 @@ def fit_budget(
     mode: str = "fast",
 ) -> tuple[int, int, int]:
     """The most swarm epochs (each ``n_agents`` evaluations), polishes (refinements of a
-    trial's best, each at most about as dear as ``7 * refine_steps`` evaluations, and, once one
-    trial is left, one evaluation of the swarm that shares what it refined) and starts of the
+    trial's best, each at most about as dear as ``7 * refine_steps`` evaluations, and one
+    evaluation of the swarm that shares what it refined) and starts of the
     final refinement that :func:`fit_wrinkles` with these settings runs (fitting drawing
     parameters, as the default names do; without them nothing is refined): all the epochs in
     paper mode; in fast mode a field of trials halved after every rung, then the last trial on
