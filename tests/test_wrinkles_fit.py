@@ -352,7 +352,10 @@ def test_coordinate_search_hand_worked():
     in α_d and a drawing parameter, which the search leaves alone. Pass 1: α_θ 0.1 → 0.1 − 0.1π
     + 2π (wrapped; 0.023 from 2.95 against 0.29), α_deposit 0.5 → 0.599 (0.021 from 0.62;
     0.6485 is 0.0285 off); pass 2 gains nothing from either, so the search stops there (4
-    batches of 4)."""
+    batches of 4). With the finer steps after it (half: ±2.5 % and ±5 %, then a quarter),
+    α_deposit goes on to 0.599 + 0.02475 = 0.62375 (0.00375 off); the next half-step pass and
+    the quarter-step pass gain nothing (6 more batches); α_θ's finer steps (±0.157, ±0.314 and
+    ±0.079, ±0.157) all land farther than its 0.023."""
     names = ("d", "1.theta", "1.deposit", "1.wrinkle_width", "fnoise")
     low, high, cyclic = _fit._bounds(names, D_RANGE, {})
     search = (low, high, cyclic, None)
@@ -369,19 +372,28 @@ def test_coordinate_search_hand_worked():
 
     start = np.array([0.04, 0.1, 0.5, 0.3, 500.0])
     params, value = _fit._coordinate_search(losses_of, start, loss(start[None])[0], names,
-                                            search, passes=3)  # fmt: skip
-    np.testing.assert_allclose(params, [0.04, 0.1 - 0.1 * np.pi + 2 * np.pi, 0.599, 0.3, 500])
+                                            search, passes=3, scales=(1.0,))  # fmt: skip
+    theta = 0.1 - 0.1 * np.pi + 2 * np.pi
+    np.testing.assert_allclose(params, [0.04, theta, 0.599, 0.3, 500])
     assert value == pytest.approx(loss(params[None])[0])
     assert len(seen) == 4 and all(r.shape == (4, 5) for r in seen)
+    seen.clear()
+    params, value = _fit._coordinate_search(losses_of, start, loss(start[None])[0], names,
+                                            search, passes=3)  # fmt: skip
+    np.testing.assert_allclose(params, [0.04, theta, 0.62375, 0.3, 500])
+    assert value == pytest.approx(loss(params[None])[0])
+    assert len(seen) == 10 and all(r.shape == (4, 5) for r in seen)
+    np.testing.assert_allclose(seen[5][:, 2], 0.599 + 0.99 * np.array([-0.05, -0.025, 0.025, 0.05]))
     moved = np.concatenate(seen)
     assert np.all(moved[:, [0, 3, 4]] == start[[0, 3, 4]])  # only the simulation parameters
     # one pass; near a bound only the steps inside the range (α_deposit 0.97: 0.871, 0.9205)
     start = np.array([0.04, 3.0, 0.97, 0.3, 500.0])
     seen.clear()
-    params, _ = _fit._coordinate_search(losses_of, start, 0.0, names, search, passes=1)
+    params, _ = _fit._coordinate_search(losses_of, start, 0.0, names, search, passes=1,
+                                        scales=(1.0,))  # fmt: skip
     assert [len(r) for r in seen] == [4, 2] and np.all(params == start)  # nothing beats 0
     np.testing.assert_allclose(seen[1][:, 2], [0.871, 0.9205])
-    assert _fit.coordinate_evaluations("fast") == 1 + 2 * 4 * 12
+    assert _fit.coordinate_evaluations("fast") == 1 + 3 * 2 * 4 * 12
     assert _fit.coordinate_evaluations("paper") == 0
 
 

@@ -18,7 +18,8 @@ Beyond the paper, the continuous drawing parameters of the best answers (up to
 :data:`REFINE_STARTS` starts, see ``refine_starts``) are then refined by gradient (optimistix
 BFGS) through the differentiable drawing with the simulation result held fixed, and the best
 refined answer is the fit's. In fast mode a greedy coordinate search over the simulation
-parameters then goes on from it (:data:`COORDINATE_PASSES`), and what it finds is refined again.
+parameters then goes on from it, at finer steps once its steps no longer gain
+(:data:`COORDINATE_PASSES`, :data:`COORDINATE_SCALES`), and what it finds is refined again.
 """
 
 from __future__ import annotations
@@ -166,6 +167,12 @@ SHARD_FROM = SPLIT_FROM
 COORDINATE_PASSES = {"fast": 2, "paper": 0}
 #: The coordinate search's steps from a parameter's current value, as shares of its search range.
 COORDINATE_STEPS = (-0.1, -0.05, 0.05, 0.1)
+#: Sizes of those steps in turn: the search goes on at half, then a quarter, of its steps once
+#: a pass gains nothing (up to ``COORDINATE_PASSES`` passes at each). On `known-3` (256²,
+#: seeds 0 and 1) the finer steps lowered the coarse search's answer by 16 % (to 0.84x; the
+#: quarter steps 0.3 % of it) for about 30 s, and the fit's own and held-out losses to 0.85x
+#: and 0.89x (seed 1) (docs/wrinkles.md).
+COORDINATE_SCALES = (1.0, 0.5, 0.25)
 
 
 class WrinkleFit(eqx.Module):
@@ -857,8 +864,9 @@ def fit_wrinkles(
             stalls buy more refinement starts, and the swarm's inertia decays faster than the
             paper's (:data:`INERTIA`); the refined answer is the start of a coordinate search
             over the fitted simulation parameters (each tried 5 % and 10 % of its search range
-            either way, up to :data:`COORDINATE_PASSES` passes; :func:`coordinate_evaluations`
-            evaluations at most), whose answer, where it gains, is refined once more;
+            either way, up to :data:`COORDINATE_PASSES` passes, then at half and a quarter of
+            those steps, :data:`COORDINATE_SCALES`; :func:`coordinate_evaluations` evaluations
+            at most), whose answer, where it gains, is refined once more;
             ``"paper"``: every trial runs all ``n_epochs`` (the paper's procedure).
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
@@ -1093,35 +1101,40 @@ def _agent_losses(loss: Callable, rows, search) -> np.ndarray:
     return np.concatenate(losses)
 
 
-def _coordinate_search(losses_of, params, loss, names, search, passes: int):
+def _coordinate_search(
+    losses_of, params, loss, names, search, passes: int, scales=COORDINATE_SCALES
+):
     """A greedy coordinate search from ``params`` (the fit's units), whose loss is ``loss``:
     for each fitted simulation parameter of either level in turn (``names`` order), the values
-    :data:`COORDINATE_STEPS` of its search range away (α_θ wraps around, the others stay in
-    their range) are scored by ``losses_of(rows) → losses`` and the best is kept where it lowers
-    the loss; up to ``passes`` passes, the last one that gained nothing. Returns the parameters
-    and their loss. The drawing parameters are the refinement's, α_d sits on its grid and the
-    noise level is global: none of them is searched."""
+    :data:`COORDINATE_STEPS` of its search range away, times a scale (α_θ wraps around, the
+    others stay in their range), are scored by ``losses_of(rows) → losses`` and the best is kept
+    where it lowers the loss; at each of ``scales`` in turn up to ``passes`` passes, the last
+    one that gained nothing. Returns the parameters and their loss. The drawing parameters are
+    the refinement's, α_d sits on its grid and the noise level is global: none of them is
+    searched."""
     low, high, cyclic, _ = search
     params = np.asarray(params, np.float64)
-    for _ in range(passes):
-        gained = False
-        for i in _coordinates(names):
-            span = float(high[i]) - float(low[i])
-            values = params[i] + span * np.asarray(COORDINATE_STEPS)
-            if cyclic[i]:
-                values = low[i] + np.mod(values - low[i], span)
-            else:
-                values = values[(values >= low[i]) & (values <= high[i])]
-            if not values.size:
-                continue
-            rows = np.repeat(params[None], len(values), axis=0)
-            rows[:, i] = values
-            losses = losses_of(rows)
-            best = int(np.argmin(losses))
-            if losses[best] < loss:
-                params, loss, gained = rows[best], float(losses[best]), True
-        if not gained:
-            break
+    for scale in scales:
+        steps = np.asarray(COORDINATE_STEPS) * scale
+        for _ in range(passes):
+            gained = False
+            for i in _coordinates(names):
+                span = float(high[i]) - float(low[i])
+                values = params[i] + span * steps
+                if cyclic[i]:
+                    values = low[i] + np.mod(values - low[i], span)
+                else:
+                    values = values[(values >= low[i]) & (values <= high[i])]
+                if not values.size:
+                    continue
+                rows = np.repeat(params[None], len(values), axis=0)
+                rows[:, i] = values
+                losses = losses_of(rows)
+                best = int(np.argmin(losses))
+                if losses[best] < loss:
+                    params, loss, gained = rows[best], float(losses[best]), True
+            if not gained:
+                break
     return params, loss
 
 
@@ -1133,10 +1146,11 @@ def _coordinates(names) -> list[int]:
 
 def coordinate_evaluations(mode: str, names: Sequence[str] = PAPER_NAMES) -> int:
     """The most evaluations of :func:`fit_wrinkles`'s coordinate search (its start's and each
-    pass's steps; a refinement of its answer follows where it gains): 97 for a default fast
-    fit, 0 in paper mode."""
+    pass's steps at each scale; a refinement of its answer follows where it gains): 289 for a
+    default fast fit, 0 in paper mode."""
     passes = COORDINATE_PASSES[_checks.choice(mode, "mode", ("fast", "paper"))]
-    return passes and 1 + passes * len(COORDINATE_STEPS) * len(_coordinates(names))
+    steps = len(COORDINATE_SCALES) * len(COORDINATE_STEPS)
+    return passes and 1 + passes * steps * len(_coordinates(names))
 
 
 def _roomy(layout: _Layout, maps: Sequence[list]) -> _Layout:
