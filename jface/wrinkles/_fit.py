@@ -171,7 +171,7 @@ COORDINATE_STEPS = (-0.1, -0.05, 0.05, 0.1)
 #: a pass gains nothing (up to ``COORDINATE_PASSES`` passes at each). In default fits (256²,
 #: `known-3` seeds 0-2, `gravel` and `synthesized` seed 1) they lowered the own-key loss to
 #: 0.85-0.97x and the held-out loss to 0.89-1.01x, for about 30 s on two CPU cores; the quarter
-#: steps gave 0.3 % of their gain (docs/wrinkles.md).
+#: steps lowered the half steps' answer by a further 0.3 % (docs/wrinkles.md).
 COORDINATE_SCALES = (1.0, 0.5, 0.25)
 
 
