@@ -431,7 +431,8 @@ def test_fast_mode_ends_with_a_coordinate_search_from_the_refined_answer(
 ):
     """The search starts from the best refined start (its loss there the swarm program's, equal
     to the refinement's up to the last bits); its answer, refined once more, is the fit's, with
-    the loss of the map the fit reports."""
+    the loss of the map the fit reports. A fit this small skips it unless asked: by default it
+    runs only where it costs at most a tenth of the budget (``fit_budget``)."""
     search = _fit._coordinate_search
     calls = []
 
@@ -442,7 +443,7 @@ def test_fast_mode_ends_with_a_coordinate_search_from_the_refined_answer(
     monkeypatch.setattr(_fit, "_coordinate_search", spy)
     small = dict(SMALL, n_agents=3, n_epochs=1)
     fit = fit_wrinkles(jax.random.key(1), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
-                       n_trials=1, refine_steps=2, **small)  # fmt: skip
+                       n_trials=1, refine_steps=2, coordinate_search=True, **small)  # fmt: skip
     ((start_loss, (moved, loss)),) = calls
     assert start_loss == pytest.approx(float(min(fit.refined_losses)), rel=1e-4)
     assert loss < start_loss  # it gained here: 1 epoch of 3 agents leaves easy descents
@@ -453,6 +454,11 @@ def test_fast_mode_ends_with_a_coordinate_search_from_the_refined_answer(
     image = _fit._fitted_map(fit.sim_key, fit.levels, layout.merged().narrowed(0))
     np.testing.assert_allclose(fit.fitted, image, atol=1e-5)
     assert float(fit.loss) == pytest.approx(float(_fit._loss(image, stats)), rel=1e-4)
+    plain = fit_wrinkles(jax.random.key(1), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
+                         n_trials=1, refine_steps=2, **small)  # fmt: skip
+    assert len(calls) == 1  # not searched: the refined starts' best is the answer
+    np.testing.assert_array_equal(plain.refined_losses, fit.refined_losses)
+    assert float(plain.loss) == float(min(plain.refined_losses)) > float(fit.loss)
 
 
 def test_size_classes_give_the_whole_grids_losses(target, layout):
@@ -493,6 +499,13 @@ def test_size_classes_give_the_whole_grids_losses(target, layout):
         (np.eye(64, dtype=np.float32), {"names": ("1.d",)}, ValueError, "names"),
         (np.eye(64, dtype=np.float32), {"d_range": (0.05, 0.02)}, ValueError, "d_range"),
         (np.eye(64, dtype=np.float32), {"refine_starts": 0}, ValueError, "refine_starts"),
+        (np.eye(64, dtype=np.float32), {"coordinate_search": 1}, ValueError, "coordinate_search"),
+        (
+            np.eye(64, dtype=np.float32),
+            {"coordinate_search": True, "mode": "paper"},
+            ValueError,
+            "coordinate_search",
+        ),
     ],
 )
 def test_bad_input(patch, kwargs, error, match, unchecked):
@@ -539,18 +552,23 @@ def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):
     # 136 × 24 = 3,264), and one more for each start's cost in the epochs after the race, which
     # a last trial that stalls there leaves unspent (76 × 50 = 3,800 evaluations: 18 more). The
     # last trial of 100 epochs stops at FAST_EPOCHS = 48: it runs 24 more after the race's 24, the
-    # fit at most 36 + 24 + 24 = 84 epochs in 7 rungs of 12, its budget still 136 epochs
-    assert fit_budget() == (84, 7, 4 + 18) and fit_budget(24) == (84, 0, 2 + 8)
-    assert fit_budget(25) == (84, 7, 2 + 9) and fit_budget(50, refine_steps=10) == (84, 7, 58)
-    assert fit_budget(150, 21, 3) == (27, 14, 2 + 12)
-    assert fit_budget(150, 20, 1) == (20, 10, 2 + 14)
-    assert fit_budget(10, 2, 16, refine_steps=0) == (30, 0, 1)
-    assert fit_budget(8, 5, 1) == (5, 0, 1) and fit_budget(20, 30, 3) == (39, 0, 1 + 2)
-    assert fit_budget(20, 30, 3, refine_steps=10) == (39, 0, 2 + 6)
+    # fit at most 36 + 24 + 24 = 84 epochs in 7 rungs of 12, its budget still 136 epochs. The
+    # coordinate search (289 evaluations, then a refinement of 210) runs where that is at most a
+    # tenth of the budget's evaluations: 136 × 50 = 6,800 (3,590 with 10 steps), 100 × 50 = 5,000
+    # in one trial, not 100 × 49 = 4,900, 136 × 25 = 3,400 nor any smaller budget below
+    assert fit_budget() == (84, 7, 4 + 18, 289) and fit_budget(24) == (84, 0, 2 + 8, 0)
+    assert fit_budget(25) == (84, 7, 2 + 9, 0)
+    assert fit_budget(50, refine_steps=10) == (84, 7, 58, 289)
+    assert fit_budget(50, 100, 1)[3] == 289 and fit_budget(49, 100, 1)[3] == 0
+    assert fit_budget(150, 21, 3) == (27, 14, 2 + 12, 0)
+    assert fit_budget(150, 20, 1) == (20, 10, 2 + 14, 0)
+    assert fit_budget(10, 2, 16, refine_steps=0) == (30, 0, 1, 0)
+    assert fit_budget(8, 5, 1) == (5, 0, 1, 0) and fit_budget(20, 30, 3) == (39, 0, 1 + 2, 0)
+    assert fit_budget(20, 30, 3, refine_steps=10) == (39, 0, 2 + 6, 0)
     paper = fit_wrinkles(jax.random.key(1), target, mode="paper", **kwargs)
     assert paper.epochs_run == (10, 10, 10)
     assert set(inertias[-30:]) == {_fit.INERTIA["paper"]} == {swarm_settings(3).inertia}
-    assert fit_budget(10, 10, 3, mode="paper") == (30, 0, 1)
+    assert fit_budget(10, 10, 3, mode="paper") == (30, 0, 1, 0)
     assert len(looked_up) == 2  # another seed: the same layout (and so the same programs)
     assert not np.array_equal(paper.swarm.trial_params, runs[0].swarm.trial_params)
 
@@ -756,7 +774,7 @@ def test_epochs_the_stalled_race_left_buy_more_refinement_starts(target, monkeyp
     small = dict(SMALL, n_agents=5, n_epochs=8)  # rungs of one epoch, no polishes
     fit = fit_wrinkles(jax.random.key(2), target, names=(*NAMES, "1.wrinkle_width"), base=TRUE,
                        n_trials=2, refine_steps=2, **small)  # fmt: skip
-    assert fit.epochs_run == (1, 1) and fit_budget(5, 8, 2, refine_steps=2) == (9, 0, 1 + 2)
+    assert fit.epochs_run == (1, 1) and fit_budget(5, 8, 2, refine_steps=2) == (9, 0, 1 + 2, 0)
     assert _fit._refine_starts(5, 9, 2) == 1 and len(fit.refined_losses) == 1 + 2
     assert float(fit.loss) <= float(min(fit.refined_losses))
 

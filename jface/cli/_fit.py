@@ -34,10 +34,8 @@ from jface.wrinkles import (
     parse_patch_size,
 )
 from jface.wrinkles._fit import (
-    COORDINATE_PASSES,
     D_LEVELS,
     checked_target,
-    coordinate_evaluations,
     layout_shipped,
 )
 
@@ -347,7 +345,7 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     stem = out.with_suffix("")
     patch = read_map(patch_path, args.channel)
     units = _units(args.patch_size, patch.shape)
-    total, polishes, starts = fit_budget(
+    total, polishes, starts, searched = fit_budget(
         args.agents, args.epochs, args.trials, refine_steps=args.refine_steps, mode=mode
     )
     # measured on 2 CPU cores: 0.24 s per agent and epoch at 256² on a slow day (0.13 on a fast
@@ -356,9 +354,8 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     # agent and each held-out key of the answer one, plus about 50 s of fixed cost (20 s when an
     # earlier fit of this patch size left its compiled programs cached) and about 45 s more to
     # build a layout that jface does not ship
-    refined = polishes + starts + bool(COORDINATE_PASSES[mode])
+    refined = polishes + starts + bool(searched)
     refinements = refined * 7 * args.refine_steps + polishes * args.agents
-    searched = coordinate_evaluations(mode)
     evaluations = total * args.agents + refinements + searched + HELDOUT_KEYS
     d_levels = D_LEVELS[mode] if args.d_levels is None else max(2, args.d_levels)
     shipped = layout_shipped(patch.shape, tuple(args.d_range), args.steps, d_levels)

@@ -17,9 +17,10 @@ process and, with the compiled programs, on disk.
 Beyond the paper, the continuous drawing parameters of the best answers (up to
 :data:`REFINE_STARTS` starts, see ``refine_starts``) are then refined by gradient (optimistix
 BFGS) through the differentiable drawing with the simulation result held fixed, and the best
-refined answer is the fit's. In fast mode a greedy coordinate search over the simulation
-parameters then goes on from it, at finer steps once its steps no longer gain
-(:data:`COORDINATE_PASSES`, :data:`COORDINATE_SCALES`), and what it finds is refined again.
+refined answer is the fit's. In fast mode, where it costs at most a tenth of the fit's budget, a
+greedy coordinate search over the simulation parameters then goes on from it, at finer steps once
+its steps no longer gain (:data:`COORDINATE_PASSES`, :data:`COORDINATE_SCALES`), and what it finds
+is refined again.
 """
 
 from __future__ import annotations
@@ -163,7 +164,10 @@ SHARD_FROM = SPLIT_FROM
 #: five (0.88-1.04x); a second gained more on `gravel` (0.83x own key, 0.88x held out) and
 #: nothing on `known-1` seed 1. A pass costs up to 48 evaluations of the default names. In the
 #: default fits (9 of `known-1`, `gravel`, `synthesized`) it lowered the own-key loss to
-#: 0.79-0.92x for about 20-30 s (docs/wrinkles.md).
+#: 0.79-0.92x for about 20-30 s (docs/wrinkles.md). It runs where it and the refinement of its
+#: answer cost at most a tenth of the budget's evaluations (:func:`_searches`): in a default fit,
+#: not in a small exploratory one, whose time it more than doubled (8 agents × 5 epochs at 256²:
+#: 108 s against 41 s).
 COORDINATE_PASSES = {"fast": 2, "paper": 0}
 #: The coordinate search's steps from a parameter's current value, as shares of its search range.
 COORDINATE_STEPS = (-0.1, -0.05, 0.05, 0.1)
@@ -820,6 +824,7 @@ def fit_wrinkles(
     refine_starts: int | None = None,
     d_levels: int | None = None,
     mode: str = "fast",
+    coordinate_search: bool | None = None,
     progress=None,
     devices: Sequence[jax.Device] | None = None,
 ) -> WrinkleFit:
@@ -866,8 +871,13 @@ def fit_wrinkles(
             over the fitted simulation parameters (each tried 5 % and 10 % of its search range
             either way, up to :data:`COORDINATE_PASSES` passes, then at half and a quarter of
             those steps, :data:`COORDINATE_SCALES`; :func:`coordinate_evaluations` evaluations
-            at most), whose answer, where it gains, is refined once more;
+            at most), whose answer, where it gains, is refined once more (see
+            ``coordinate_search``);
             ``"paper"``: every trial runs all ``n_epochs`` (the paper's procedure).
+        coordinate_search: whether a fast fit ends with the coordinate search (default: where
+            it and the refinement of its answer cost at most a tenth of the evaluations of the
+            budget, as in a default fit; the fourth number of :func:`fit_budget`); never in
+            paper mode.
         progress: ``progress(trial, epoch, best_loss)`` after every epoch. Raising
             ``KeyboardInterrupt`` there (or Ctrl-C) stops the fit, which then returns the best
             found so far (unrefined; while refining: the best start refined by then; while
@@ -925,6 +935,14 @@ def fit_wrinkles(
     n_trials = _checks.integer(n_trials, "n_trials", low=1)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
     n_agents = _checks.integer(n_agents, "n_agents", low=3)
+    if coordinate_search is None:
+        steps = refine_steps if fields else 0  # nothing to refine without drawing fields
+        coordinate_search = _searches(mode, n_agents, n_trials, n_epochs, steps, names)
+    elif not isinstance(coordinate_search, bool) or (coordinate_search and mode == "paper"):
+        raise ValueError(
+            f"coordinate_search must be True or False (True only in fast mode), got "
+            f"{coordinate_search!r} in {mode} mode"
+        )
     settings = swarm_settings(n_agents, batched=True, inertia=INERTIA[mode])
     evaluations = n_agents * (n_epochs + 1) * n_trials
     mesh = _agent_mesh(devices, n_agents, evaluations)
@@ -1022,7 +1040,7 @@ def fit_wrinkles(
         t, params = int(swarm.best_trial), swarm.params
         levels = _snapped(_levels_from(params, names, base), refining)
         answer = _Refined(levels, swarm.loss, None)
-    if COORDINATE_PASSES[mode] and not interrupted:
+    if coordinate_search and not interrupted:
 
         def losses_of(rows):  # the swarm's program scores the search's every candidate
             return _agent_losses(runs[t].loss, rows, search)
@@ -1322,6 +1340,17 @@ def _polishes(mode: str, refine_steps: int, n_agents: int, n_epochs: int) -> boo
     return mode == "fast" and refine_steps > 0 and n_agents * (n_epochs // 8) >= POLISH_FROM
 
 
+def _searches(
+    mode: str, n_agents: int, n_trials: int, n_epochs: int, refine_steps: int, names=PAPER_NAMES
+) -> bool:
+    """Whether a fit ends with the coordinate search by default: in fast mode, where its most
+    evaluations and the refinement of its answer (about ``7 * refine_steps``) cost at most a
+    tenth of the budget's evaluations (as the extra refinement starts, :func:`_refine_starts`)."""
+    cost = coordinate_evaluations(mode, names) + 7 * refine_steps
+    budget = _budget_epochs(mode, n_trials, n_epochs) * n_agents
+    return mode == "fast" and 10 * cost <= budget
+
+
 def fit_budget(
     n_agents: int = 50,
     n_epochs: int = 100,
@@ -1329,7 +1358,7 @@ def fit_budget(
     *,
     refine_steps: int | None = None,
     mode: str = "fast",
-) -> tuple[int, int, int]:
+) -> tuple[int, int, int, int]:
     """The most swarm epochs (each ``n_agents`` evaluations), polishes (refinements of a
     trial's best, each at most about as dear as ``7 * refine_steps`` evaluations, and one
     evaluation of the swarm that shares what it refined) and starts of the
@@ -1340,7 +1369,9 @@ def fit_budget(
     (up to :data:`REFINE_STARTS`) while the extra ones cost at most a tenth of the budget's
     evaluations (the race up to ``n_epochs``), and in fast mode one more for each start's cost
     in the budget's epochs that the last trial left unspent (the most: all after the race,
-    when it stalls there)."""
+    when it stalls there). Last, the most evaluations of the coordinate search that ends a fast
+    fit (:func:`coordinate_evaluations`; 0 where it does not run, when it and the refinement of
+    its answer would cost more than a tenth of the budget's evaluations)."""
     mode = _checks.choice(mode, "mode", ("fast", "paper"))
     n_agents = _checks.integer(n_agents, "n_agents", low=3)
     n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
@@ -1355,8 +1386,10 @@ def fit_budget(
         if _polishes(mode, refine_steps, n_agents, n_epochs):
             # one after every rung (the last trial's last cut at its limit)
             polishes = -(-epochs // _rung(n_epochs))
+    searched = _searches(mode, n_agents, n_trials, n_epochs, refine_steps)
     # the most unspent epochs: the last trial stalled at the end of the race
-    return epochs, polishes, _refine_starts(n_agents, budget, refine_steps, rest)
+    starts = _refine_starts(n_agents, budget, refine_steps, rest)
+    return epochs, polishes, starts, coordinate_evaluations(mode) if searched else 0
 
 
 def _starts(runs: list[_Trial], finished: list[int], low, high, n: int):
