@@ -19,7 +19,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LogNorm, Normalize, TwoSlopeNorm
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter
+from matplotlib.ticker import FuncFormatter, MaxNLocator, NullLocator
 
 from jface import _checks
 
@@ -250,13 +250,14 @@ def lines(
 
 
 def _plain_within_a_decade(axis, limits) -> None:
-    """Plain tick labels (``1.716``) on a log axis spanning less than a decade, where
-    matplotlib labels its minor ticks ``1.716×10⁰``; wider axes keep the powers of ten."""
+    """Plain, evenly spaced ticks (``0.6, 0.8, …, 1.8``) on a log axis spanning less than a
+    decade, where matplotlib labels its minor ticks ``1.716×10⁰`` and leaves a range such as 1–2
+    without any; wider axes keep the powers of ten."""
     low, high = limits
     if low > 0 and high / low < 10:
-        plain = FuncFormatter(lambda value, _: f"{value:.4g}")
-        axis.set_major_formatter(plain)
-        axis.set_minor_formatter(plain)
+        axis.set_major_locator(MaxNLocator(nbins=6))
+        axis.set_minor_locator(NullLocator())
+        axis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:.4g}"))
 
 
 def heatmap(

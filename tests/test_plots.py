@@ -115,10 +115,11 @@ def test_convergence_marks_an_answer_refined_after_the_search():
 
 def test_a_log_axis_within_a_decade_reads_plain_numbers():
     """A short fit's losses span less than a decade: its tick labels are plain numbers, not
-    ``1.716×10⁰``; a history over decades keeps the powers of ten."""
+    ``1.716×10⁰``, also between 1 and 2 (where a log axis has no ticks of its own); a history
+    over decades keeps the powers of ten."""
 
-    def labels(history):
-        figure = plots.convergence(np.asarray(history), title="Fit")
+    def labels(history, answer=None):
+        figure = plots.convergence(np.asarray(history), title="Fit", answer=answer)
         FigureCanvasAgg(figure).draw()
         ax = figure.axes[0]
         low, high = ax.get_ylim()
@@ -128,6 +129,8 @@ def test_a_log_axis_within_a_decade_reads_plain_numbers():
     narrow = labels([[1.716, 1.716, 1.705]])
     assert narrow and not any("10^" in t or "times" in t for t in narrow)
     assert all(1.6 < float(t) < 1.8 for t in narrow)
+    exploratory = [float(t) for t in labels([[1.716] * 5 + [1.483]], ("refined", 0.5156))]
+    assert len(exploratory) >= 4 and sum(1.0 < t < 1.8 for t in exploratory) >= 2, exploratory
     wide = labels([[10.0, 1.0, 0.01]])
     assert any("10^" in t for t in wide)
 
