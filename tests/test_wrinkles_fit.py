@@ -23,6 +23,7 @@ from jface.io import write_exr
 from jface.optim import texture_stats
 from jface.optim._pso import Swarm, swarm_settings
 from jface.wrinkles import WrinkleParams, _fit, fit_budget, fit_wrinkles
+from jface.wrinkles._drawing import needed_entries
 from jface.wrinkles._fit import (
     _bfgs,
     _draw,
@@ -183,6 +184,40 @@ def test_heldout_maps_the_static_draw_sizes_cannot_hold_are_drawn_with_room(
         eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in keys
     ]
     assert len(redrawn) == len(keys)
+    np.testing.assert_allclose(heldout, expected, rtol=5e-4)
+
+
+def test_heldout_maps_that_overflow_the_static_draw_sizes_by_less_than_twice_need_no_sizing(
+    fit, target, layout, monkeypatch
+):
+    """A held-out map with more (primitive, tile) pairs than the fit's bins hold, but fewer than
+    twice as many, is drawn on bins of twice the pairs, a program compiled beside the other
+    keys' losses: none of its primitives are sized first, and the losses are the fit's own
+    sizes'."""
+    stats = texture_stats(target)
+    low, high, cyclic = (np.asarray(a, np.float32) for a in _fit._bounds(NAMES, D_RANGE, {}))
+    search = (low, high, cyclic, swarm_settings(3, batched=True))
+    params = np.asarray(fit.swarm.params)
+    keys = HELDOUT[:2]
+    levels = _levels_from(jnp.asarray(params), NAMES, TRUE)
+    needed = np.array([
+        [needed_entries(p, layout.shape, tile=_fit._TILE, bulge=i == 0, periodic=True)
+         for i, p in enumerate(_fit._primitives_of(k, levels, layout))]
+        for k in keys
+    ])  # fmt: skip
+    entries = np.max(needed, axis=0) // 2 + 16  # half the most pairs a key needs, and a margin
+    assert np.all(np.any(needed > entries, axis=1))  # every key overflows a level
+    cramped = dataclasses.replace(layout, entries=tuple(map(int, entries)))
+    sized, ahead = [], []
+    monkeypatch.setattr(_fit, "_primitives_of", lambda *a: sized.append(1))
+    compile_ahead = _fit.compile_ahead
+    monkeypatch.setattr(_fit, "compile_ahead", lambda *a: ahead.append(1) or compile_ahead(*a))
+    loss = _SwarmLoss(fit.sim_key, stats, TRUE, cramped, NAMES)
+    heldout = _fit._heldout(loss, params, keys, search)
+    expected = [
+        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in keys
+    ]
+    assert not sized and ahead == [1]
     np.testing.assert_allclose(heldout, expected, rtol=5e-4)
 
 
