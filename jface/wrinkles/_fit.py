@@ -203,9 +203,10 @@ class WrinkleFit(eqx.Module):
             ``swarm.best_trial``: another trial's answer can refine better).
         heldout_losses: losses of ``levels`` simulated and drawn with :data:`HELDOUT_KEYS`
             other simulation keys (the same pores; a map the fit's static draw sizes cannot hold
-            is drawn on bins sized to it). ``loss`` is the least of many answers on one key and
-            so flatters the parameters; :attr:`heldout_loss`, the mean of these, flatters them
-            less (it keeps the fit's pores, which a render with another seed also resamples).
+            is drawn on bins of twice the pairs, or sized to it). ``loss`` is the least of many
+            answers on one key and so flatters the parameters; :attr:`heldout_loss`, the mean of
+            these, flatters them less (it keeps the fit's pores, which a render with another
+            seed also resamples).
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
