@@ -133,7 +133,7 @@ STALL_TOLERANCE, PATIENCE = 1e-2, 10
 #: inertia decays faster (0.58 after 24 epochs, 0.43 after 60): default fits of 256² `gravel`
 #: and `synthesized` maps (seeds 0-2) then ended 0.66-1.00x as high on their own keys as with
 #: 0.98 and 0.89-1.19x on the same 8 held-out keys; over 12 fits of six targets the median
-#: ratios were 0.93 and 0.96 (`brick` seed 0: 1.74x, docs/wrinkles.md).
+#: ratios were 0.93 and 0.96 (`brick` seed 0: 1.74x, docs/wrinkles-fitting-log.md).
 INERTIA = {"fast": (0.4, 0.6, 0.95), "paper": (0.4, 0.6, 0.98)}
 #: Fast mode's last trial runs at most this many epochs (fewer where ``n_epochs`` is smaller);
 #: the epochs of the race's budget past them buy refinement starts, as a stall's do. By then its
@@ -142,7 +142,7 @@ INERTIA = {"fast": (0.4, 0.6, 0.95), "paper": (0.4, 0.6, 0.98)}
 #: lowered their swarm's best by 0-4.2 % (median 0.8 %) in the rung to 60, and the three that
 #: ran on to 72 by 0-0.4 % in that rung; a rung costs about 60-70 s of a fit's 10 min. With
 #: it `gravel`'s fits (seeds 0-2) took 638, 582 and 589 s on a slow day, at 1.00, 0.99 and
-#: 1.00x their own-key loss without it (docs/wrinkles.md).
+#: 1.00x their own-key loss without it (docs/wrinkles-fitting-log.md).
 FAST_EPOCHS = 48
 #: Fast mode polishes every trial's best with the refinement after each rung of successive
 #: halving when a rung holds at least this many evaluations: one polish (up to 30 BFGS steps)
@@ -164,10 +164,10 @@ SHARD_FROM = SPLIT_FROM
 #: five (0.88-1.04x); a second gained more on `gravel` (0.83x own key, 0.88x held out) and
 #: nothing on `known-1` seed 1. A pass costs up to 48 evaluations of the default names. In the
 #: default fits (9 of `known-1`, `gravel`, `synthesized`) it lowered the own-key loss to
-#: 0.79-0.92x for about 20-30 s (docs/wrinkles.md). It runs where it and the refinement of its
-#: answer cost at most a tenth of the budget's evaluations (:func:`_searches`): in a default fit,
-#: not in a small exploratory one, whose time it more than doubled (8 agents × 5 epochs at 256²:
-#: 108 s against 41 s).
+#: 0.79-0.92x for about 20-30 s (docs/wrinkles-fitting-log.md). It runs where it and the
+#: refinement of its answer cost at most a tenth of the budget's evaluations (:func:`_searches`):
+#: in a default fit, not in a small exploratory one, whose time it more than doubled (8 agents ×
+#: 5 epochs at 256²: 108 s against 41 s).
 COORDINATE_PASSES = {"fast": 2, "paper": 0}
 #: The coordinate search's steps from a parameter's current value, as shares of its search range.
 COORDINATE_STEPS = (-0.1, -0.05, 0.05, 0.1)
@@ -175,7 +175,7 @@ COORDINATE_STEPS = (-0.1, -0.05, 0.05, 0.1)
 #: a pass gains nothing (up to ``COORDINATE_PASSES`` passes at each). In default fits (256²,
 #: `known-3` seeds 0-2, `gravel` and `synthesized` seed 1) they lowered the own-key loss to
 #: 0.85-0.97x and the held-out loss to 0.89-1.01x, for about 30 s on two CPU cores; the quarter
-#: steps lowered the half steps' answer by a further 0.3 % (docs/wrinkles.md).
+#: steps lowered the half steps' answer by a further 0.3 % (docs/wrinkles-fitting-log.md).
 COORDINATE_SCALES = (1.0, 0.5, 0.25)
 
 
@@ -1295,7 +1295,7 @@ def _halve(runs: list[_Trial], n_epochs: int, search, progress, polish=None) -> 
     list: the trials that ran to their end). The epochs it leaves of ``n_epochs`` (when it
     stalls, and past the limit) go to refinement starts
     (:func:`_refine_starts`): running the trials it beat on with them made 17 default fits
-    take 1.45x as long (median) for the same median loss (docs/wrinkles.md)."""
+    take 1.45x as long (median) for the same median loss (docs/wrinkles-fitting-log.md)."""
     rung, last = _rung(n_epochs), min(n_epochs, FAST_EPOCHS)
     alive = list(range(len(runs)))
     while len(alive) > 1:
@@ -1516,7 +1516,8 @@ REFINE_BACKTRACKS = 6
 #: aside) that each lowered its loss by less than ``REFINE_GAIN`` of it: a polish from a best
 #: that an earlier one refined gains about 1e-5 a step for all its steps. Replayed for 30 steps,
 #: the 10 refinements of a `known-1` fit and 6 from small fits' answers (`brick`, `gravel`) took
-#: 285 steps instead of 480, every loss within 0.3 % of the 30 steps' (docs/wrinkles.md).
+#: 285 steps instead of 480, every loss within 0.3 % of the 30 steps'
+#: (docs/wrinkles-fitting-log.md).
 REFINE_FLAT_STEPS, REFINE_GAIN = 2, 1e-4
 
 
