@@ -22,7 +22,7 @@ from jface.cli import main
 from jface.io import write_exr
 from jface.optim import texture_stats
 from jface.optim._pso import Swarm, swarm_settings
-from jface.wrinkles import WrinkleParams, _fit, fit_budget, fit_wrinkles
+from jface.wrinkles import WrinkleParams, _fit, fit_budget, fit_wrinkles, heldout_key_count
 from jface.wrinkles._drawing import needed_entries
 from jface.wrinkles._fit import (
     _bfgs,
@@ -112,7 +112,9 @@ def test_heldout_losses_score_the_answer_with_other_simulation_keys(fit, target,
     the fit's simulation key), which differ from its own key's: the search's least loss
     flatters the parameters on other keys."""
     k_sim = jax.random.split(jax.random.key(0))[0]
-    keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), _fit.HELDOUT_KEYS)
+    count = heldout_key_count(SMALL["n_agents"], SMALL["n_epochs"], 1)
+    assert count == 10  # a tenth of the budget's 100 evaluations
+    keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), count)
     stats = texture_stats(target)
     answer = jnp.array([[getattr(fit.levels[0], n[2:]) for n in NAMES]], jnp.float32)
     expected = [eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(answer)[0] for k in keys]
@@ -325,7 +327,7 @@ def test_refinement_compiles_once_while_the_swarm_runs(target, layout, caplog):
     assert len(fit.refined_losses) == 3 and float(fit.loss) <= float(min(fit.refined_losses))
     assert float(fit.refined_losses[0]) <= float(fit.swarm_loss)
     k_sim = jax.random.split(jax.random.key(1))[0]
-    keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), _fit.HELDOUT_KEYS)
+    keys = jax.random.split(jax.random.fold_in(k_sim, _fit._HELDOUT_STREAM), _fit.HELDOUT_MIN_KEYS)
     answer = jnp.array([[getattr(fit.levels[0], n[2:]) for n in names]], jnp.float32)
     stats = texture_stats(target)
     expected = [eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, names))(answer)[0] for k in keys]
@@ -556,6 +558,25 @@ def test_bad_input(patch, kwargs, error, match, unchecked):
 def test_fit_budget_bad_input(kwargs, match):
     with pytest.raises((TypeError, ValueError), match=match):
         fit_budget(**kwargs)
+
+
+def test_heldout_keys_cost_at_most_a_tenth_of_the_budget():
+    """Worked by hand: a tenth of the budget's evaluations, between 8 and 32 keys. The default
+    fast budget, 136 epochs × 50 agents = 6,800 evaluations, and a race of 39 epochs × 20
+    (780): 32; 10 × 10 in one trial: 10; the exploratory 8 × 5 = 40 and 3 × 1: 8; paper mode
+    counts every trial's epochs (10 × 10 × 3 = 300: 30), as does fast mode's race of 16 trials of
+    2 epochs (30 epochs × 10). Fewer keys are the first of more."""
+    assert heldout_key_count() == 32 and heldout_key_count(20, 30, 3) == 32
+    assert heldout_key_count(10, 10, 1) == 10
+    assert heldout_key_count(8, 5, 1) == 8 == heldout_key_count(3, 1, 1)
+    assert heldout_key_count(10, 10, 3, mode="paper") == 30 == heldout_key_count(10, 2, 16)
+    key = jax.random.key(3)
+    np.testing.assert_array_equal(
+        jax.random.key_data(_fit.heldout_keys(key, 8)),
+        jax.random.key_data(_fit.heldout_keys(key)[:8]),
+    )
+    with pytest.raises(ValueError, match="mode"):
+        heldout_key_count(mode="quick")
 
 
 def test_fast_mode_is_deterministic_and_halves_the_trials(target, monkeypatch):

@@ -25,11 +25,11 @@ from jface.cli._processes import Elsewhere, add_process_options, spread
 from jface.io import check_output, commit, provenance, read_map, write_figure, write_json
 from jface.render import shade
 from jface.wrinkles import (
-    HELDOUT_KEYS,
     REFINE_STEPS,
     ParamUnits,
     fit_budget,
     fit_wrinkles,
+    heldout_key_count,
     params_to_json,
     parse_patch_size,
 )
@@ -356,7 +356,8 @@ def _fit_one(args, mode: str, patch_path: str, out: Path, key: str, progress: bo
     # build a layout that jface does not ship
     refined = polishes + starts + bool(searched)
     refinements = refined * 7 * args.refine_steps + polishes * args.agents
-    evaluations = total * args.agents + refinements + searched + HELDOUT_KEYS
+    heldout = heldout_key_count(args.agents, args.epochs, args.trials, mode=mode)
+    evaluations = total * args.agents + refinements + searched + heldout
     d_levels = D_LEVELS[mode] if args.d_levels is None else max(2, args.d_levels)
     shipped = layout_shipped(patch.shape, tuple(args.d_range), args.steps, d_levels)
     minutes = (evaluations * 0.24 * patch.size / 256**2 + 50 + 45 * (not shipped)) / 60

@@ -46,6 +46,7 @@ from jface.wrinkles._fit import (
     WrinkleFit,
     fit_budget,
     fit_wrinkles,
+    heldout_key_count,
 )
 from jface.wrinkles._graph import GraphSpec, PoreGraph, build_graph, graph_spec
 from jface.wrinkles._mesh_radius import radius_map_from_mesh
@@ -131,6 +132,7 @@ __all__ = [
     "gaussian_blur",
     "graph_spec",
     "half_edge_scores",
+    "heldout_key_count",
     "label_components",
     "load_params",
     "make_pores",

@@ -121,7 +121,10 @@ REFINE_STARTS = 4
 #: evaluations). The losses of one answer with other keys spread by 29-45 % of their mean on
 #: real textures and 5-23 % on maps drawn from known parameters (standard deviation over 32
 #: keys, the benchmark's fits), so 32 give their mean within about 8 % and 4 % (8: 15 % and 8 %).
-HELDOUT_KEYS = 32
+#: A fit takes as many as cost at most a tenth of its budget's evaluations, and at least
+#: ``HELDOUT_MIN_KEYS`` (:func:`heldout_key_count`): a 256² exploratory fit of 40 evaluations
+#: spent 15-25 s of its 46-88 s on 32 keys and 5-15 s on 8 (measured on two cores).
+HELDOUT_KEYS, HELDOUT_MIN_KEYS = 32, 8
 #: Fast mode: stop when the best loss fell by less than this share over ``PATIENCE`` epochs.
 #: Judged after each rung's polish in full fits: there, 0.1 % ran a 256² `brick` crop's last
 #: trial 24 epochs and 2 polishes past 1 %'s stop for 1.0 % of its own loss (0.4 % on other
@@ -201,12 +204,12 @@ class WrinkleFit(eqx.Module):
             gained from it (empty when interrupted before any).
         answer_trial: the trial whose answer ``levels`` is (static; in paper mode not always
             ``swarm.best_trial``: another trial's answer can refine better).
-        heldout_losses: losses of ``levels`` simulated and drawn with :data:`HELDOUT_KEYS`
-            other simulation keys (the same pores; a map the fit's static draw sizes cannot hold
-            is drawn on bins of twice the pairs, or sized to it). ``loss`` is the least of many
-            answers on one key and so flatters the parameters; :attr:`heldout_loss`, the mean of
-            these, flatters them less (it keeps the fit's pores, which a render with another
-            seed also resamples).
+        heldout_losses: losses of ``levels`` simulated and drawn with other simulation keys,
+            :func:`heldout_key_count` of them (the same pores; a map the fit's static draw
+            sizes cannot hold is drawn on bins of twice the pairs, or sized to it). ``loss`` is
+            the least of many answers on one key and so flatters the parameters;
+            :attr:`heldout_loss`, the mean of these, flatters them less (it keeps the fit's
+            pores, which a render with another seed also resamples).
     """
 
     levels: tuple[WrinkleParams, WrinkleParams]
@@ -306,11 +309,12 @@ _HELDOUT_STREAM = 0x4E1D
 _LAYOUT_SEED = 0x5EED_A11D
 
 
-def heldout_keys(key: Array) -> Array:
-    """The :data:`HELDOUT_KEYS` simulation keys that score the answer of a fit with ``key``
-    besides its own (folded into its simulation key, whose split gives the trials' keys)."""
+def heldout_keys(key: Array, count: int = HELDOUT_KEYS) -> Array:
+    """The ``count`` simulation keys that score the answer of a fit with ``key`` besides its
+    own (folded into its simulation key, whose split gives the trials' keys); fewer are the
+    first of more."""
     k_sim = jax.random.split(key)[0]
-    return jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), HELDOUT_KEYS)
+    return jax.random.split(jax.random.fold_in(k_sim, _HELDOUT_STREAM), count)
 
 
 def layout_key() -> Array:
@@ -1060,7 +1064,8 @@ def fit_wrinkles(
     image = answer.image
     if image is None:  # a start the refinement did not beat (or none refined): drawn here
         image = _fitted_map(sim_keys[t], answer.levels, refining)
-    heldout = _heldout(runs[t].loss, params, heldout_keys(key), search)
+    count = heldout_key_count(n_agents, n_epochs, n_trials, mode=mode)
+    heldout = _heldout(runs[t].loss, params, heldout_keys(key, count), search)
     return WrinkleFit(
         answer.levels, answer.loss, swarm.loss, swarm, names, sim_keys[t], image,
         interrupted, epochs, refined_losses, t, heldout,
@@ -1403,6 +1408,21 @@ def fit_budget(
     # the most unspent epochs: the last trial stalled at the end of the race
     starts = _refine_starts(n_agents, budget, refine_steps, rest)
     return epochs, polishes, starts, coordinate_evaluations(mode) if searched else 0
+
+
+def heldout_key_count(
+    n_agents: int = 50, n_epochs: int = 100, n_trials: int = 3, *, mode: str = "fast"
+) -> int:
+    """How many other simulation keys score the answer of :func:`fit_wrinkles` with these
+    settings (:attr:`WrinkleFit.heldout_losses`, one evaluation each): as many as cost at most a
+    tenth of the budget's evaluations (the race up to ``n_epochs`` in fast mode, every epoch in
+    paper mode), between :data:`HELDOUT_MIN_KEYS` and :data:`HELDOUT_KEYS`."""
+    mode = _checks.choice(mode, "mode", ("fast", "paper"))
+    n_agents = _checks.integer(n_agents, "n_agents", low=3)
+    n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
+    n_trials = _checks.integer(n_trials, "n_trials", low=1)
+    budget = _budget_epochs(mode, n_trials, n_epochs) * n_agents
+    return min(HELDOUT_KEYS, max(HELDOUT_MIN_KEYS, budget // 10))
 
 
 def _starts(runs: list[_Trial], finished: list[int], low, high, n: int):
