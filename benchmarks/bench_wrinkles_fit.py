@@ -55,7 +55,13 @@ from jface import detail
 from jface._compilation import keep_compiled_programs
 from jface.io import content_key, load_arrays, provenance, save_arrays
 from jface.optim import texture_stats
-from jface.wrinkles import REFINE_STEPS, WrinkleParams, fit_wrinkles, params_to_json
+from jface.wrinkles import (
+    REFINE_STEPS,
+    WrinkleParams,
+    fit_wrinkles,
+    heldout_key_count,
+    params_to_json,
+)
 from jface.wrinkles._fit import (
     D_LEVELS,
     D_RANGE,
@@ -277,7 +283,8 @@ def truth_heldout(target: np.ndarray, mode: str, seed: int, args) -> float:
     whole = _kept_layout(layout_key(), target.shape, D_RANGE, args.steps, d_levels).merged()
     layout = whole.narrowed(0)  # every α_d value in one class, as the fit's refinement draws
     stats = texture_stats(jnp.asarray(target))
-    keys = heldout_keys(jax.random.key(seed))
+    count = heldout_key_count(args.agents, args.epochs, args.trials, mode=mode)
+    keys = heldout_keys(jax.random.key(seed), count)
     return float(np.mean([float(truth_loss(k, stats, layout)) for k in keys]))
 
 
