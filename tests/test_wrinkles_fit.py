@@ -45,7 +45,7 @@ TRUE = (
     WrinkleParams(d=0.0225, theta=1.0, s=0.2, deposit=0.6, snoise=0.001),
 )
 SMALL = {"d_range": D_RANGE, "n_agents": 10, "n_epochs": 10, "n_steps": 30, "d_levels": 4}
-# held-out simulation keys for scores outside a fit (as many as a fit's)
+# held-out simulation keys for scores outside a fit (as many as a default fit's)
 HELDOUT = jax.random.split(jax.random.key(5), _fit.HELDOUT_KEYS)
 
 
