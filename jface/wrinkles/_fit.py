@@ -1390,10 +1390,7 @@ def fit_budget(
     when it stalls there). Last, the most evaluations of the coordinate search that ends a fast
     fit (:func:`coordinate_evaluations`; 0 where it does not run, when it and the refinement of
     its answer would cost more than a tenth of the budget's evaluations)."""
-    mode = _checks.choice(mode, "mode", ("fast", "paper"))
-    n_agents = _checks.integer(n_agents, "n_agents", low=3)
-    n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
-    n_trials = _checks.integer(n_trials, "n_trials", low=1)
+    mode, n_agents, n_epochs, n_trials = _checked_budget(mode, n_agents, n_epochs, n_trials)
     refine_steps = REFINE_STEPS[mode] if refine_steps is None else refine_steps
     refine_steps = _checks.integer(refine_steps, "refine_steps", low=0)
     polishes, rest = 0, 0
@@ -1410,6 +1407,16 @@ def fit_budget(
     return epochs, polishes, starts, coordinate_evaluations(mode) if searched else 0
 
 
+def _checked_budget(mode, n_agents, n_epochs, n_trials) -> tuple[str, int, int, int]:
+    """A fit's mode and swarm sizes, checked as :func:`fit_wrinkles` checks them."""
+    return (
+        _checks.choice(mode, "mode", ("fast", "paper")),
+        _checks.integer(n_agents, "n_agents", low=3),
+        _checks.integer(n_epochs, "n_epochs", low=1),
+        _checks.integer(n_trials, "n_trials", low=1),
+    )
+
+
 def heldout_key_count(
     n_agents: int = 50, n_epochs: int = 100, n_trials: int = 3, *, mode: str = "fast"
 ) -> int:
@@ -1417,10 +1424,7 @@ def heldout_key_count(
     settings (:attr:`WrinkleFit.heldout_losses`, one evaluation each): as many as cost at most a
     tenth of the budget's evaluations (the race up to ``n_epochs`` in fast mode, every epoch in
     paper mode), between :data:`HELDOUT_MIN_KEYS` and :data:`HELDOUT_KEYS`."""
-    mode = _checks.choice(mode, "mode", ("fast", "paper"))
-    n_agents = _checks.integer(n_agents, "n_agents", low=3)
-    n_epochs = _checks.integer(n_epochs, "n_epochs", low=1)
-    n_trials = _checks.integer(n_trials, "n_trials", low=1)
+    mode, n_agents, n_epochs, n_trials = _checked_budget(mode, n_agents, n_epochs, n_trials)
     budget = _budget_epochs(mode, n_trials, n_epochs) * n_agents
     return min(HELDOUT_KEYS, max(HELDOUT_MIN_KEYS, budget // 10))
 
