@@ -223,6 +223,49 @@ def test_heldout_maps_that_overflow_the_static_draw_sizes_by_less_than_twice_nee
     np.testing.assert_allclose(heldout, expected, rtol=5e-4)
 
 
+def test_a_swarm_room_below_the_bins_draws_as_its_bins_and_scores_held_out_maps_past_it(
+    fit, target, layout, monkeypatch
+):
+    """A small fit's swarm loss has bins of twice the (primitive, tile) pairs its ``room`` lets
+    it draw: its losses are those of bins of that room, to the bit (NaN where a map needs
+    more), and held-out maps that need more than the room but fit the bins are scored by the
+    same program with all the room of its bins: no other program compiled, none sized."""
+    stats = texture_stats(target)
+    low, high, cyclic = (np.asarray(a, np.float32) for a in _fit._bounds(NAMES, D_RANGE, {}))
+    search = (low, high, cyclic, swarm_settings(3, batched=True))
+    params = np.asarray(fit.swarm.params)
+    keys = HELDOUT[:2]
+    levels = _levels_from(jnp.asarray(params), NAMES, TRUE)
+    needed = np.array([
+        [needed_entries(p, layout.shape, tile=_fit._TILE, bulge=i == 0, periodic=True)
+         for i, p in enumerate(_fit._primitives_of(k, levels, layout))]
+        for k in keys
+    ])  # fmt: skip
+    room = np.max(needed, axis=0) // 2 + 16  # half the most pairs a key needs, and a margin
+    assert np.all(np.any(needed > room, axis=1))  # every key overflows the room on a level
+    cramped = dataclasses.replace(layout, entries=tuple(map(int, room)))
+    roomy = dataclasses.replace(layout, entries=tuple(map(int, 2 * room)))
+    doubled = dataclasses.replace(layout, entries=tuple(2 * n for n in layout.entries))
+    x = jnp.asarray(params[None])
+    # drawn within the room (the fit's key, all its layout's pairs) and past it (held-out keys)
+    for k, bins, more in [(fit.sim_key, layout, doubled)] + [(k, cramped, roomy) for k in keys]:
+        room_of = jnp.asarray(bins.entries, jnp.int32)
+        plain = eqx.filter_jit(_SwarmLoss(k, stats, TRUE, bins, NAMES))(x)
+        capped = eqx.filter_jit(_SwarmLoss(k, stats, TRUE, more, NAMES, None, room_of))(x)
+        np.testing.assert_array_equal(np.asarray(capped), np.asarray(plain))
+        assert np.isfinite(float(plain[0])) == (bins is layout)
+    sized, ahead = [], []
+    monkeypatch.setattr(_fit, "_primitives_of", lambda *a: sized.append(1))
+    monkeypatch.setattr(_fit, "compile_ahead", lambda *a: ahead.append(1))
+    loss = _SwarmLoss(fit.sim_key, stats, TRUE, roomy, NAMES, None, jnp.asarray(room, jnp.int32))
+    heldout = _fit._heldout(loss, params, keys, search)
+    expected = [
+        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in keys
+    ]
+    assert not sized and not ahead
+    np.testing.assert_allclose(heldout, expected, rtol=5e-4)
+
+
 def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_where_they_no_longer_gain():
     """The refinement's solve is optimistix's BFGS, step for step (the same answer as
     ``optimistix.minimise`` on a smooth loss). It stops once the line search has halved a step

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
 import equinox as eqx
@@ -148,22 +148,32 @@ FOOTPRINT = 0.7
 
 
 def perturbation(
-    key: jax.Array, xy, params: WrinkleParams, periodic: bool
-) -> Float[Array, "... 2"]:
-    """The perturbation offset field at points ``xy`` (..., 2): two-channel multi-octave Perlin
-    noise of frequency α_fperturb and amplitude ``α_sperturb · α_wrinkle-width · α_d`` (the
-    valley half-width of a full-strength wrinkle), periodic on periodic maps.
+    key: jax.Array, point_sets: Sequence[Array], params: WrinkleParams, periodic: bool
+) -> list[Float[Array, "... 2"]]:
+    """The perturbation offset field at each set of points ``(..., 2)``: two-channel
+    multi-octave Perlin noise of frequency α_fperturb and amplitude
+    ``α_sperturb · α_wrinkle-width · α_d`` (the valley half-width of a full-strength wrinkle),
+    periodic on periodic maps.
 
     One field for every wrinkle and pore: the paper queries it at the centre-line point nearest
-    each vertex, so wrinkles that meet at a pore move with it and stay joined."""
-    freq = at(params.fperturb, xy, periodic=periodic)
-    amp = at(params.sperturb, xy, periodic=periodic) * at(params.wrinkle_width, xy,
-                                                           periodic=periodic)  # fmt: skip
-    amp = amp * at(params.d, xy, periodic=periodic)
+    each vertex, so wrinkles that meet at a pore move with it and stay joined. The noise is
+    evaluated once over all the sets (one traced field: less to compile); each set's amplitude
+    is its own, so its gradient sums over that set alone."""
+    flat = jnp.concatenate([xy.reshape(-1, 2) for xy in point_sets])
+    freq = at(params.fperturb, flat, periodic=periodic)
     kx, ky = jax.random.split(key)
-    fx = _fractal(kx, xy, freq, _PERTURB_OCTAVES, 0.5, 2.0, periodic)
-    fy = _fractal(ky, xy, freq, _PERTURB_OCTAVES, 0.5, 2.0, periodic)
-    return amp[..., None] * jnp.stack([fx, fy], -1)
+    fx = _fractal(kx, flat, freq, _PERTURB_OCTAVES, 0.5, 2.0, periodic)
+    fy = _fractal(ky, flat, freq, _PERTURB_OCTAVES, 0.5, 2.0, periodic)
+    unit = jnp.stack([fx, fy], -1)
+    offsets, first = [], 0
+    for xy in point_sets:
+        amp = at(params.sperturb, xy, periodic=periodic) * at(params.wrinkle_width, xy,
+                                                              periodic=periodic)  # fmt: skip
+        amp = amp * at(params.d, xy, periodic=periodic)
+        count = math.prod(xy.shape[:-1])
+        offsets.append(amp[..., None] * unit[first : first + count].reshape(xy.shape))
+        first += count
+    return offsets
 
 
 @functools.partial(jax.jit, static_argnames="shape")
@@ -198,17 +208,16 @@ def primitives(
     # perturbation (Fig. 7a, 9): one offset field moves the pores, the wrinkles' end points with
     # them, and the centre-line vertices in between (the normal component, relative to the
     # moved straight line, is what the rasteriser interpolates)
-    k_field = key
-    move_v = perturbation(k_field, pos, params, per)
-    ends = move_v[graph.edge_nodes]  # (E, 2, 2)
-    start = a + ends[:, 0]
-    delta = graph.edge_delta + ends[:, 1] - ends[:, 0]
     # the inner vertices only: the end vertices move with their pores (no offset)
     t = jnp.linspace(0.0, 1.0, N_VERTICES, dtype=jnp.float32)[1:-1]
     verts = a[:, None, :] + t[None, :, None] * graph.edge_delta[:, None, :]
     verts = jnp.mod(verts, 1.0) if per else verts
+    move_v, move_verts = perturbation(key, (pos, verts), params, per)
+    ends = move_v[graph.edge_nodes]  # (E, 2, 2)
+    start = a + ends[:, 0]
+    delta = graph.edge_delta + ends[:, 1] - ends[:, 0]
     along = ends[:, None, 0] + t[None, :, None] * (ends[:, None, 1] - ends[:, None, 0])
-    rest = perturbation(k_field, verts, params, per) - along
+    rest = move_verts - along
     length = jnp.sqrt(jnp.maximum(jnp.sum(delta * delta, -1), 1e-20))
     normal = jnp.stack([-delta[:, 1], delta[:, 0]], -1) / length[:, None]  # as _fragments
     offsets = jnp.pad(jnp.sum(rest * normal[:, None, :], -1), ((0, 0), (1, 1)))
@@ -303,13 +312,14 @@ def _tiles_touched(prims, shape, tile, bulge, periodic) -> tuple[Array, Array]:
 
 def bin_primitives(
     prims: Primitives, shape: tuple[int, int], *, tile: int, span: int, bulge: bool,
-    periodic: bool, entries: int | None = None,
+    periodic: bool, entries: int | None = None, room: ArrayLike | None = None,
 ) -> Bins:  # fmt: skip
     """Bin primitives to ``tile``-pixel screen tiles (each to ≤ ``span`` tiles per axis).
 
     The (primitive, tile) pairs are enumerated into ``entries`` slots (static; default
     ``m · span²``, always enough) and sorted by tile. A primitive wider than ``span`` tiles, or
-    more pairs than ``entries``, set ``overflow``.
+    more pairs than ``room`` (at most ``entries``, may be traced; default ``entries``), set
+    ``overflow``.
     """
     m = prims.valid.shape[0]
     gy, gx = -(-shape[0] // tile), -(-shape[1] // tile)
@@ -319,7 +329,7 @@ def bin_primitives(
     pairs = n[:, 0] * n[:, 1]
     end = jnp.cumsum(pairs)
     entries = m * span * span if entries is None else entries
-    overflow = overflow | (end[-1] > entries)
+    overflow = overflow | (end[-1] > (entries if room is None else room))
     # slot j holds pair j: primitive i with end[i-1] <= j < end[i], its (j - end[i-1])-th tile.
     # i counts the ends at or before j (searchsorted, side "right"): a cumulative sum of the ends
     # marked on the slots, the same numbers 5-8x faster on the CPU than the binary search

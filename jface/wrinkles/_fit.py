@@ -623,8 +623,12 @@ def _draw(key, sims, levels, layout: _Layout) -> Float[Array, "H W"]:
     return _draw_checked(key, sims, levels, layout)[0]
 
 
-def _draw_checked(key, sims, levels, layout: _Layout) -> tuple[Float[Array, "H W"], Array]:
-    """Like :func:`_draw`, plus whether some level was too large for the static draw sizes.
+def _draw_checked(
+    key, sims, levels, layout: _Layout, room: Array | None = None
+) -> tuple[Float[Array, "H W"], Array]:
+    """Like :func:`_draw`, plus whether some level was too large for the static draw sizes (or
+    made more (primitive, tile) pairs than ``room``, per level, allows: see
+    :class:`_SwarmLoss`).
 
     Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into huge pores) can make more
     (primitive, tile) pairs than the bins hold, which would leave the map incomplete. Such a
@@ -633,7 +637,7 @@ def _draw_checked(key, sims, levels, layout: _Layout) -> tuple[Float[Array, "H W
     with as many passes as it needs, differentiably (the drawing's own gradient).
     """
     out, bad = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool)
-    for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout)):
+    for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout, room)):
         bins = bins._replace(count=jnp.where(bins.overflow, 0, bins.count))  # no primitive then
         out = out + render(k_noise, prims, bins, levels[i], layout.shape, _options(i, layout), True)
         bad = bad | bins.overflow
@@ -648,8 +652,9 @@ def _options(level: int, layout: _Layout) -> DrawOptions:
     )  # fmt: skip
 
 
-def _binned(key, sims, levels, layout: _Layout):
-    """Per level: the noise key, the primitives and their bins."""
+def _binned(key, sims, levels, layout: _Layout, room: Array | None = None):
+    """Per level: the noise key, the primitives and their bins (``room``: the pairs each
+    level's bins may hold, default its entries)."""
     for i, (k, (graph, w), params) in enumerate(
         zip(jax.random.split(jax.random.fold_in(key, 7)), sims, levels, strict=True)
     ):
@@ -658,7 +663,7 @@ def _binned(key, sims, levels, layout: _Layout):
         prims = primitives(k_perturb, graph, w, params, layout.shape)
         bins = bin_primitives(
             prims, layout.shape, tile=_TILE, span=opts.span, bulge=opts.bulge, periodic=True,
-            entries=opts.entries,
+            entries=opts.entries, room=None if room is None else room[i],
         )  # fmt: skip
         yield k_noise, prims, bins
 
@@ -698,7 +703,12 @@ class _SwarmLoss(eqx.Module):
     (``shard_map``): the agents are padded to a multiple of the device count with copies of
     agent 0, each device evaluates its share, and the padding's losses are dropped. An agent's
     loss has the same bits in any share (tested: 6 agents on 1 device and on 4; measured: 8
-    agents on 1, 3 and 4), so the fit does not depend on the device count."""
+    agents on 1, 3 and 4), so the fit does not depend on the device count.
+
+    ``room`` (traced, per level; None: the layout's entries) caps the (primitive, tile) pairs
+    a level may draw below the layout's static entries: a small fit's swarm bins hold twice
+    what it may draw, so that held-out keys whose maps need more are scored by the same program
+    with more room rather than by a second one to compile (:func:`_heldout`)."""
 
     key: Array
     target: Any
@@ -706,6 +716,7 @@ class _SwarmLoss(eqx.Module):
     layout: _Layout
     names: tuple[str, ...] = eqx.field(static=True)
     mesh: Mesh | None = eqx.field(static=True, default=None)
+    room: Array | None = None
 
     def __call__(self, xs):
         if self.mesh is None:
@@ -754,7 +765,7 @@ class _SwarmLoss(eqx.Module):
     def _map(self, layout: _Layout, levels):
         """The loss of one agent (NaN where undrawable)."""
         sims, levels = _simulate(self.key, levels, layout)
-        image, bad = _draw_checked(self.key, sims, levels, layout)
+        image, bad = _draw_checked(self.key, sims, levels, layout, self.room)
         return jnp.where(bad, jnp.nan, _loss(image, self.target))
 
 
@@ -957,14 +968,18 @@ def fit_wrinkles(
     # each new patch size compiles programs of its own: a process fitting many must not crash
     spare_memory_mappings()
     layout = _kept_layout(layout_key(), target.shape, d_range, n_steps, d_levels)
-    whole = layout.merged()
+    whole, room = layout.merged(), None
     if evaluations < SPLIT_FROM:
-        layout = whole
+        # bins of twice the pairs, drawn up to the fit's own (the same losses): the held-out
+        # keys that need more, about half of them near an answer with wide pores, are then
+        # scored by the swarm's program, not by a second one compiled for them
+        room = jnp.asarray(whole.entries, jnp.int32)
+        layout = dataclasses.replace(whole, entries=tuple(2 * n for n in whole.entries))
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
     # one swarm per trial, each with its own simulation key; all share one compiled loss
     runs = [
-        _Trial(k, _SwarmLoss(sk, target_stats, base, layout, names, mesh))
+        _Trial(k, _SwarmLoss(sk, target_stats, base, layout, names, mesh, room))
         for k, sk in zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True)
     ]
     low, high = low.astype(np.float32), high.astype(np.float32)
@@ -1081,9 +1096,10 @@ def _fitted_map(sim_key, levels, layout: _Layout) -> Float[Array, "H W"]:
 
 def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     """Losses of ``params`` (one agent, in the fit's units) simulated and drawn with each of
-    ``keys``: the trial's compiled swarm loss with another key, the agent in its first row and
-    the other rows undrawable (non-finite), which cost nothing. A key whose map the fit's static
-    draw sizes cannot hold (non-finite there) is drawn again on bins of twice the pairs, a
+    ``keys``: the trial's compiled swarm loss with another key and all the room of its bins
+    (:class:`_SwarmLoss`), the agent in its first row and the other rows undrawable
+    (non-finite), which cost nothing. A key whose map the swarm's static draw sizes cannot hold
+    (non-finite there) is drawn again on bins of twice the pairs, a
     program compiled beside the other keys' losses from the first such key on (near an optimum
     that widens its pores, half the keys of a small fit's answer overflow, and sizing their bins
     first compiled a second program after the keys: 15 s of a 72 s exploratory fit cold); a key
@@ -1096,10 +1112,12 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     levels = _levels_from(units, loss.names, loss.base)
     layout = loss.layout.narrowed(int(loss.layout.size_class(levels[0].d)))
     roomier = dataclasses.replace(layout, entries=tuple(2 * n for n in layout.entries))
-    keyed = [eqx.tree_at(lambda f: f.key, loss, k) for k in keys]
+    # the swarm's program with all the room its bins have; the redraws with all of their own
+    room = None if loss.room is None else jnp.asarray(layout.entries, jnp.int32)
+    keyed = [dataclasses.replace(loss, key=k, room=None) for k in keys]
     losses, ahead = np.empty(len(keys), np.float32), None
     for i, keyed_loss in enumerate(keyed):
-        losses[i] = _agent_losses(keyed_loss, params, search)[0]
+        losses[i] = _agent_losses(dataclasses.replace(keyed_loss, room=room), params, search)[0]
         if ahead is None and not np.isfinite(losses[i]):
             ahead = compile_ahead(_redrawn_loss, keyed_loss, roomier, units)
     undrawn = np.flatnonzero(~np.isfinite(losses))
