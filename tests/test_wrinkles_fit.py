@@ -7,6 +7,7 @@ import inspect
 import json
 import logging
 from pathlib import Path
+from types import SimpleNamespace
 
 import equinox as eqx
 import jax
@@ -189,81 +190,78 @@ def test_heldout_maps_the_static_draw_sizes_cannot_hold_are_drawn_with_room(
     np.testing.assert_allclose(heldout, expected, rtol=5e-4)
 
 
+@pytest.fixture(scope="module")
+def overflowing(fit, target, layout):
+    """The fit's answer, two held-out keys and their losses on the fit's bins, and bins
+    (``cramped``) of half the most (primitive, tile) pairs either key's map makes, and a
+    margin: every key overflows them on some level."""
+    stats = texture_stats(target)
+    low, high, cyclic = (np.asarray(a, np.float32) for a in _fit._bounds(NAMES, D_RANGE, {}))
+    params = np.asarray(fit.swarm.params)
+    keys = HELDOUT[:2]
+    levels = _levels_from(jnp.asarray(params), NAMES, TRUE)
+    needed = np.array([
+        [needed_entries(p, layout.shape, tile=_fit._TILE, bulge=i == 0, periodic=True)
+         for i, p in enumerate(_fit._primitives_of(k, levels, layout))]
+        for k in keys
+    ])  # fmt: skip
+    entries = np.max(needed, axis=0) // 2 + 16
+    assert np.all(np.any(needed > entries, axis=1))
+    expected = [
+        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in keys
+    ]
+    return SimpleNamespace(
+        stats=stats, search=(low, high, cyclic, swarm_settings(3, batched=True)), params=params,
+        keys=keys, expected=expected,
+        cramped=dataclasses.replace(layout, entries=tuple(map(int, entries))),
+    )  # fmt: skip
+
+
 def test_heldout_maps_that_overflow_the_static_draw_sizes_by_less_than_twice_need_no_sizing(
-    fit, target, layout, monkeypatch
+    fit, overflowing, monkeypatch
 ):
     """A held-out map with more (primitive, tile) pairs than the fit's bins hold, but fewer than
     twice as many, is drawn on bins of twice the pairs, a program compiled beside the other
     keys' losses: none of its primitives are sized first, and the losses are the fit's own
     sizes'."""
-    stats = texture_stats(target)
-    low, high, cyclic = (np.asarray(a, np.float32) for a in _fit._bounds(NAMES, D_RANGE, {}))
-    search = (low, high, cyclic, swarm_settings(3, batched=True))
-    params = np.asarray(fit.swarm.params)
-    keys = HELDOUT[:2]
-    levels = _levels_from(jnp.asarray(params), NAMES, TRUE)
-    needed = np.array([
-        [needed_entries(p, layout.shape, tile=_fit._TILE, bulge=i == 0, periodic=True)
-         for i, p in enumerate(_fit._primitives_of(k, levels, layout))]
-        for k in keys
-    ])  # fmt: skip
-    entries = np.max(needed, axis=0) // 2 + 16  # half the most pairs a key needs, and a margin
-    assert np.all(np.any(needed > entries, axis=1))  # every key overflows a level
-    cramped = dataclasses.replace(layout, entries=tuple(map(int, entries)))
+    o = overflowing
     sized, ahead = [], []
     monkeypatch.setattr(_fit, "_primitives_of", lambda *a: sized.append(1))
     compile_ahead = _fit.compile_ahead
     monkeypatch.setattr(_fit, "compile_ahead", lambda *a: ahead.append(1) or compile_ahead(*a))
-    loss = _SwarmLoss(fit.sim_key, stats, TRUE, cramped, NAMES)
-    heldout = _fit._heldout(loss, params, keys, search)
-    expected = [
-        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in keys
-    ]
+    loss = _SwarmLoss(fit.sim_key, o.stats, TRUE, o.cramped, NAMES)
+    heldout = _fit._heldout(loss, o.params, o.keys, o.search)
     assert not sized and ahead == [1]
-    np.testing.assert_allclose(heldout, expected, rtol=5e-4)
+    np.testing.assert_allclose(heldout, o.expected, rtol=5e-4)
 
 
 def test_a_swarm_room_below_the_bins_draws_as_its_bins_and_scores_held_out_maps_past_it(
-    fit, target, layout, monkeypatch
+    fit, layout, overflowing, monkeypatch
 ):
     """A small fit's swarm loss has bins of twice the (primitive, tile) pairs its ``room`` lets
     it draw: its losses are those of bins of that room, to the bit (NaN where a map needs
     more), and held-out maps that need more than the room but fit the bins are scored by the
     same program with all the room of its bins: no other program compiled, none sized."""
-    stats = texture_stats(target)
-    low, high, cyclic = (np.asarray(a, np.float32) for a in _fit._bounds(NAMES, D_RANGE, {}))
-    search = (low, high, cyclic, swarm_settings(3, batched=True))
-    params = np.asarray(fit.swarm.params)
-    keys = HELDOUT[:2]
-    levels = _levels_from(jnp.asarray(params), NAMES, TRUE)
-    needed = np.array([
-        [needed_entries(p, layout.shape, tile=_fit._TILE, bulge=i == 0, periodic=True)
-         for i, p in enumerate(_fit._primitives_of(k, levels, layout))]
-        for k in keys
-    ])  # fmt: skip
-    room = np.max(needed, axis=0) // 2 + 16  # half the most pairs a key needs, and a margin
-    assert np.all(np.any(needed > room, axis=1))  # every key overflows the room on a level
-    cramped = dataclasses.replace(layout, entries=tuple(map(int, room)))
-    roomy = dataclasses.replace(layout, entries=tuple(map(int, 2 * room)))
-    doubled = dataclasses.replace(layout, entries=tuple(2 * n for n in layout.entries))
-    x = jnp.asarray(params[None])
+    o = overflowing
+    twice = [dataclasses.replace(bins, entries=tuple(2 * n for n in bins.entries))
+             for bins in (layout, o.cramped)]  # fmt: skip
+    x = jnp.asarray(o.params[None])
     # drawn within the room (the fit's key, all its layout's pairs) and past it (held-out keys)
-    for k, bins, more in [(fit.sim_key, layout, doubled)] + [(k, cramped, roomy) for k in keys]:
-        room_of = jnp.asarray(bins.entries, jnp.int32)
-        plain = eqx.filter_jit(_SwarmLoss(k, stats, TRUE, bins, NAMES))(x)
-        capped = eqx.filter_jit(_SwarmLoss(k, stats, TRUE, more, NAMES, None, room_of))(x)
+    cases = [(fit.sim_key, layout, twice[0])] + [(k, o.cramped, twice[1]) for k in o.keys]
+    for k, bins, more in cases:
+        room = jnp.asarray(bins.entries, jnp.int32)
+        plain = eqx.filter_jit(_SwarmLoss(k, o.stats, TRUE, bins, NAMES))(x)
+        capped = eqx.filter_jit(_SwarmLoss(k, o.stats, TRUE, more, NAMES, None, room))(x)
         np.testing.assert_array_equal(np.asarray(capped), np.asarray(plain))
         assert np.isfinite(float(plain[0])) == (bins is layout)
     sized, ahead = [], []
     monkeypatch.setattr(_fit, "_primitives_of", lambda *a: sized.append(1))
     monkeypatch.setattr(_fit, "compile_ahead", lambda *a: ahead.append(1))
-    loss = _SwarmLoss(fit.sim_key, stats, TRUE, roomy, NAMES, None, jnp.asarray(room, jnp.int32))
-    heldout = _fit._heldout(loss, params, keys, search)
-    expected = [
-        eqx.filter_jit(_SwarmLoss(k, stats, TRUE, layout, NAMES))(params[None])[0] for k in keys
-    ]
+    room = jnp.asarray(o.cramped.entries, jnp.int32)
+    loss = _SwarmLoss(fit.sim_key, o.stats, TRUE, twice[1], NAMES, None, room)
+    heldout = _fit._heldout(loss, o.params, o.keys, o.search)
     assert not sized and not ahead
-    np.testing.assert_allclose(heldout, expected, rtol=5e-4)
+    np.testing.assert_allclose(heldout, o.expected, rtol=5e-4)
 
 
 def test_the_refinement_takes_optimistix_bfgs_steps_and_stops_where_they_no_longer_gain():
