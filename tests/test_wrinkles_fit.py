@@ -342,13 +342,18 @@ def test_the_refinement_keeps_to_the_search_range_a_user_gives(fit, target, layo
     assert refined[0] < 0.2 and refined[1] == pytest.approx(0.3, abs=1e-3), refined
 
 
-def test_refinement_compiles_once_while_the_swarm_runs(target, layout, caplog):
+def test_refinement_compiles_once_while_the_swarm_runs(target, layout, caplog, monkeypatch):
     """The refinement's program is compiled ahead, in a background thread, for the types of the
     answer the swarm will give: the fit then finds it compiled (one compile, not in the main
     thread; the coordinate search's answer is refined by it too). Its held-out losses are the
-    answer's swarm losses with the fit's held-out keys."""
+    answer's swarm losses with the fit's held-out keys, scored by the swarm's own program (one
+    compile): a fit this small gives its swarm bins of twice the pairs of the refinement's
+    layout, and lets it draw as many as the refinement's."""
     names = (*NAMES, "1.wrinkle_width")
     small = dict(SMALL, n_agents=3, n_epochs=1)
+    swarm_losses = []
+    trial = _fit._Trial
+    monkeypatch.setattr(_fit, "_Trial", lambda k, loss: swarm_losses.append(loss) or trial(k, loss))
     # compiled here (not read from the persistent cache), each compile logged
     settings = {"jax_enable_compilation_cache": False, "jax_log_compiles": True}
     before = {name: getattr(jax.config, name) for name in settings}
@@ -364,6 +369,14 @@ def test_refinement_compiles_once_while_the_swarm_runs(target, layout, caplog):
     compiles = [r for r in caplog.records if "XLA compilation of jit(_refined)" in r.getMessage()]
     # one program for every start: the swarm's best and its two other agents' personal bests
     assert len(compiles) == 1 and compiles[0].threadName != "MainThread"
+    swarm = [
+        r for r in caplog.records if "XLA compilation of jit(swarm_evaluate)" in r.getMessage()
+    ]
+    assert len(swarm) == 1
+    (loss,) = swarm_losses
+    merged = layout.merged()
+    assert loss.layout.entries == tuple(2 * n for n in merged.entries)
+    np.testing.assert_array_equal(loss.room, merged.entries)
     assert float(fit.loss) <= float(fit.swarm_loss) and not fit.interrupted
     assert len(fit.refined_losses) == 3 and float(fit.loss) <= float(min(fit.refined_losses))
     assert float(fit.refined_losses[0]) <= float(fit.swarm_loss)

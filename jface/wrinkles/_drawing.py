@@ -329,7 +329,7 @@ def bin_primitives(
     pairs = n[:, 0] * n[:, 1]
     end = jnp.cumsum(pairs)
     entries = m * span * span if entries is None else entries
-    overflow = overflow | (end[-1] > (entries if room is None else room))
+    overflow = overflow | (end[-1] > (entries if room is None else jnp.minimum(room, entries)))
     # slot j holds pair j: primitive i with end[i-1] <= j < end[i], its (j - end[i-1])-th tile.
     # i counts the ends at or before j (searchsorted, side "right"): a cumulative sum of the ends
     # marked on the slots, the same numbers 5-8x faster on the CPU than the binary search

@@ -205,7 +205,7 @@ class WrinkleFit(eqx.Module):
         answer_trial: the trial whose answer ``levels`` is (static; in paper mode not always
             ``swarm.best_trial``: another trial's answer can refine better).
         heldout_losses: losses of ``levels`` simulated and drawn with other simulation keys,
-            :func:`heldout_key_count` of them (the same pores; a map the fit's static draw
+            :func:`heldout_key_count` of them (the same pores; a map the swarm's static draw
             sizes cannot hold is drawn on bins of twice the pairs, or sized to it). ``loss`` is
             the least of many answers on one key and so flatters the parameters;
             :attr:`heldout_loss`, the mean of these, flatters them less (it keeps the fit's
@@ -1099,12 +1099,11 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     ``keys``: the trial's compiled swarm loss with another key and all the room of its bins
     (:class:`_SwarmLoss`), the agent in its first row and the other rows undrawable
     (non-finite), which cost nothing. A key whose map the swarm's static draw sizes cannot hold
-    (non-finite there) is drawn again on bins of twice the pairs, a
-    program compiled beside the other keys' losses from the first such key on (near an optimum
-    that widens its pores, half the keys of a small fit's answer overflow, and sizing their bins
-    first compiled a second program after the keys: 15 s of a 72 s exploratory fit cold); a key
-    that overflows those too is drawn on bins sized to its primitives, so every key has its
-    loss; NaN only where even those bins overflow."""
+    (non-finite there; twice the fit's own pairs in a small fit) is drawn again on bins of
+    twice the pairs, a program compiled beside the other keys' losses from the first such key
+    on (near an optimum that widens its pores, about half the keys of an answer overflow the
+    fit's own pairs); a key that overflows those too is drawn on bins sized to its primitives,
+    so every key has its loss; NaN only where even those bins overflow."""
     low, high = search[:2]
     lo, hi = jnp.asarray(low, jnp.float32), jnp.asarray(high, jnp.float32)
     x = jnp.asarray((np.asarray(params) - low) / (high - low), jnp.float32)
