@@ -243,8 +243,7 @@ def test_a_swarm_room_below_the_bins_draws_as_its_bins_and_scores_held_out_maps_
     more), and held-out maps that need more than the room but fit the bins are scored by the
     same program with all the room of its bins: no other program compiled, none sized."""
     o = overflowing
-    twice = [dataclasses.replace(bins, entries=tuple(2 * n for n in bins.entries))
-             for bins in (layout, o.cramped)]  # fmt: skip
+    twice = [bins.roomier() for bins in (layout, o.cramped)]
     x = jnp.asarray(o.params[None])
     # drawn within the room (the fit's key, all its layout's pairs) and past it (held-out keys)
     cases = [(fit.sim_key, layout, twice[0])] + [(k, o.cramped, twice[1]) for k in o.keys]
@@ -375,7 +374,7 @@ def test_refinement_compiles_once_while_the_swarm_runs(target, layout, caplog, m
     assert len(swarm) == 1
     (loss,) = swarm_losses
     merged = layout.merged()
-    assert loss.layout.entries == tuple(2 * n for n in merged.entries)
+    assert loss.layout.entries == merged.roomier().entries
     np.testing.assert_array_equal(loss.room, merged.entries)
     assert float(fit.loss) <= float(fit.swarm_loss) and not fit.interrupted
     assert len(fit.refined_losses) == 3 and float(fit.loss) <= float(min(fit.refined_losses))

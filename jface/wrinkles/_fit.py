@@ -292,6 +292,10 @@ class _Layout(eqx.Module):
         whole = tuple(tuple(map(max, *level)) for level in zip(*self.slots, strict=True))
         return dataclasses.replace(self, split=len(self.d_values), slots=(whole,))
 
+    def roomier(self) -> _Layout:
+        """This layout with bins of twice the (primitive, tile) pairs."""
+        return dataclasses.replace(self, entries=tuple(2 * n for n in self.entries))
+
 
 # screen tile (pixels) and primitives per pass of the swarm's draws: 8-pixel tiles draw a 256²
 # two-level map 2-4x faster than 32-pixel ones (fewer primitives tested per pixel)
@@ -974,7 +978,7 @@ def fit_wrinkles(
         # keys that need more, about half of them near an answer with wide pores, are then
         # scored by the swarm's program, not by a second one compiled for them
         room = jnp.asarray(whole.entries, jnp.int32)
-        layout = dataclasses.replace(whole, entries=tuple(2 * n for n in whole.entries))
+        layout = whole.roomier()
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
     # one swarm per trial, each with its own simulation key; all share one compiled loss
@@ -1110,7 +1114,7 @@ def _heldout(loss: _SwarmLoss, params, keys, search) -> Array:
     units = lo + x * (hi - lo)  # the agent exactly as the swarm read it
     levels = _levels_from(units, loss.names, loss.base)
     layout = loss.layout.narrowed(int(loss.layout.size_class(levels[0].d)))
-    roomier = dataclasses.replace(layout, entries=tuple(2 * n for n in layout.entries))
+    roomier = layout.roomier()
     # the swarm's program with all the room its bins have; the redraws with all of their own
     room = None if loss.room is None else jnp.asarray(layout.entries, jnp.int32)
     keyed = [dataclasses.replace(loss, key=k, room=None) for k in keys]
