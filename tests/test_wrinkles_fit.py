@@ -166,6 +166,25 @@ def test_heldout_losses_are_one_agents_swarm_losses_with_each_key(fit, target, l
     assert np.min(np.abs(np.diff(np.sort(expected))) / np.sort(expected)[1:]) > 5e-4
 
 
+def test_the_noise_table_gives_the_swarms_bits(fit, target, layout):
+    """A large fit's swarm takes the perturbation's noise from its trial's table
+    (:func:`_fit._noise_table`) instead of computing it: the same losses to the bit, and a key
+    other than the table's (a held-out one) computes its own (a wrong noise moves the loss)."""
+    stats = texture_stats(target)
+    points = jnp.array([[0.6, 1.0], [0.3, 1.0], [0.9, 1.0]], jnp.float32)
+    table = _fit._noise_table(fit.sim_key, layout, TRUE)
+    plain = _SwarmLoss(fit.sim_key, stats, TRUE, layout, NAMES)
+    tabled = dataclasses.replace(plain, table=table)
+    np.testing.assert_array_equal(eqx.filter_jit(tabled)(points), eqx.filter_jit(plain)(points))
+    other = eqx.filter_jit(dataclasses.replace(tabled, key=HELDOUT[0]))(points)
+    expected = eqx.filter_jit(dataclasses.replace(plain, key=HELDOUT[0]))(points)
+    np.testing.assert_allclose(other, expected, rtol=1e-6)
+    misread = eqx.filter_jit(
+        dataclasses.replace(tabled, table=_fit._noise_table(HELDOUT[0], layout, TRUE))
+    )
+    assert np.all(np.abs(np.asarray(misread(points)) / np.asarray(expected) - 1) > 1e-4)
+
+
 def test_heldout_maps_the_static_draw_sizes_cannot_hold_are_drawn_with_room(
     fit, target, layout, monkeypatch
 ):

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import equinox as eqx
@@ -147,42 +147,64 @@ def pore_strength(
 FOOTPRINT = 0.7
 
 
-def perturbation(
-    key: jax.Array, point_sets: Sequence[Array], params: WrinkleParams, periodic: bool
-) -> list[Float[Array, "... 2"]]:
-    """The perturbation offset field at each set of points ``(..., 2)``: two-channel
-    multi-octave Perlin noise of frequency α_fperturb and amplitude
-    ``α_sperturb · α_wrinkle-width · α_d`` (the valley half-width of a full-strength wrinkle),
-    periodic on periodic maps.
+def perturbation_noise(
+    key: jax.Array, graph: PoreGraph, params: WrinkleParams
+) -> tuple[Float[Array, "n 2"], Float[Array, "E v 2"]]:
+    """The perturbation's noise before its amplitude, at the graph's pores ``(n, 2)`` and at its
+    wrinkles' inner centre-line vertices ``(E, N_VERTICES - 2, 2)``: two-channel multi-octave
+    Perlin noise of frequency α_fperturb, periodic on periodic graphs.
 
     One field for every wrinkle and pore: the paper queries it at the centre-line point nearest
-    each vertex, so wrinkles that meet at a pore move with it and stay joined. The noise is
-    evaluated once over all the sets (one traced field: less to compile); each set's amplitude
-    is its own, so its gradient sums over that set alone."""
-    flat = jnp.concatenate([xy.reshape(-1, 2) for xy in point_sets])
-    freq = at(params.fperturb, flat, periodic=periodic)
+    each vertex, so wrinkles that meet at a pore move with it and stay joined. It is evaluated
+    once over pores and vertices (one traced field: less to compile). A function of the key, the
+    graph and α_fperturb alone, so a fit that draws many agents on one graph computes it once
+    (:func:`primitives`' ``noise``)."""
+    pos, verts = graph.positions, _inner_vertices(graph)
+    flat = jnp.concatenate([pos, verts.reshape(-1, 2)])
+    freq = at(params.fperturb, flat, periodic=graph.periodic)
     kx, ky = jax.random.split(key)
-    fx = _fractal(kx, flat, freq, _PERTURB_OCTAVES, 0.5, 2.0, periodic)
-    fy = _fractal(ky, flat, freq, _PERTURB_OCTAVES, 0.5, 2.0, periodic)
+    fx = _fractal(kx, flat, freq, _PERTURB_OCTAVES, 0.5, 2.0, graph.periodic)
+    fy = _fractal(ky, flat, freq, _PERTURB_OCTAVES, 0.5, 2.0, graph.periodic)
     unit = jnp.stack([fx, fy], -1)
-    offsets, first = [], 0
-    for xy in point_sets:
-        amp = at(params.sperturb, xy, periodic=periodic) * at(params.wrinkle_width, xy,
-                                                              periodic=periodic)  # fmt: skip
-        amp = amp * at(params.d, xy, periodic=periodic)
-        count = math.prod(xy.shape[:-1])
-        offsets.append(amp[..., None] * unit[first : first + count].reshape(xy.shape))
-        first += count
-    return offsets
+    n = pos.shape[0]
+    return unit[:n], unit[n:].reshape(verts.shape)
+
+
+def _inner_t() -> Float[Array, " v"]:
+    """Positions along a wrinkle (0 to 1) of its inner centre-line vertices."""
+    return jnp.linspace(0.0, 1.0, N_VERTICES, dtype=jnp.float32)[1:-1]
+
+
+def _inner_vertices(graph: PoreGraph) -> Float[Array, "E v 2"]:
+    """The wrinkles' inner centre-line vertices before the perturbation (the end vertices move
+    with their pores)."""
+    a = graph.positions[graph.edge_nodes[:, 0]]
+    verts = a[:, None, :] + _inner_t()[None, :, None] * graph.edge_delta[:, None, :]
+    return jnp.mod(verts, 1.0) if graph.periodic else verts
+
+
+def _perturbation_amplitude(params: WrinkleParams, xy, periodic: bool) -> Float[Array, "..."]:
+    """``α_sperturb · α_wrinkle-width · α_d`` at points ``xy``: the valley half-width of a
+    full-strength wrinkle."""
+    amp = at(params.sperturb, xy, periodic=periodic) * at(params.wrinkle_width, xy,
+                                                          periodic=periodic)  # fmt: skip
+    return amp * at(params.d, xy, periodic=periodic)
 
 
 @functools.partial(jax.jit, static_argnames="shape")
 def primitives(
-    key: jax.Array, graph: PoreGraph, weights, params: WrinkleParams, shape: tuple[int, int]
+    key: jax.Array,
+    graph: PoreGraph,
+    weights,
+    params: WrinkleParams,
+    shape: tuple[int, int],
+    noise: tuple[Array, Array] | None = None,
 ) -> Primitives:
     """The wrinkle and pore primitives of one level drawn at ``shape`` (traced-friendly, no
     validation). α_scale multiplies every strength before the blend (§3.1.2); widths below
-    :data:`FOOTPRINT` pixels are widened at equal depth × width."""
+    :data:`FOOTPRINT` pixels are widened at equal depth × width. ``noise``: the perturbation's
+    :func:`perturbation_noise` of ``key`` and ``graph`` where it is at hand (default: computed
+    here)."""
     per = graph.periodic
     pos = graph.positions
     a = pos[graph.edge_nodes[:, 0]]
@@ -209,10 +231,12 @@ def primitives(
     # them, and the centre-line vertices in between (the normal component, relative to the
     # moved straight line, is what the rasteriser interpolates)
     # the inner vertices only: the end vertices move with their pores (no offset)
-    t = jnp.linspace(0.0, 1.0, N_VERTICES, dtype=jnp.float32)[1:-1]
-    verts = a[:, None, :] + t[None, :, None] * graph.edge_delta[:, None, :]
-    verts = jnp.mod(verts, 1.0) if per else verts
-    move_v, move_verts = perturbation(key, (pos, verts), params, per)
+    t = _inner_t()
+    noise = perturbation_noise(key, graph, params) if noise is None else noise
+    move_v, move_verts = (
+        _perturbation_amplitude(params, xy, per)[..., None] * unit
+        for xy, unit in zip((pos, _inner_vertices(graph)), noise, strict=True)
+    )
     ends = move_v[graph.edge_nodes]  # (E, 2, 2)
     start = a + ends[:, 0]
     delta = graph.edge_delta + ends[:, 1] - ends[:, 0]

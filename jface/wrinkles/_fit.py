@@ -67,6 +67,7 @@ from jface.wrinkles._drawing import (
     entries_of,
     needed_entries,
     needed_span,
+    perturbation_noise,
     primitives,
     render,
 )
@@ -422,10 +423,15 @@ def _remembered(memo: dict, name: tuple, build):
     return memo[name]
 
 
+def _key_bits(key) -> bytes:
+    """A (concrete) key as plain bytes."""
+    return np.asarray(jax.random.key_data(key)).tobytes()
+
+
 def _design_name(key, d_range, d_levels) -> tuple:
     """What a design is built from, as plain values (with the setting that changes the key's
     random stream)."""
-    bits = np.asarray(jax.random.key_data(key)).tobytes()
+    bits = _key_bits(key)
     stream = (str(jax.random.key_impl(key)), bool(jax.config.jax_threefry_partitionable))
     return (*stream, bits, tuple(map(float, d_range)), int(d_levels))
 
@@ -628,11 +634,11 @@ def _draw(key, sims, levels, layout: _Layout) -> Float[Array, "H W"]:
 
 
 def _draw_checked(
-    key, sims, levels, layout: _Layout, room: Array | None = None
+    key, sims, levels, layout: _Layout, room: Array | None = None, table=None
 ) -> tuple[Float[Array, "H W"], Array]:
     """Like :func:`_draw`, plus whether some level was too large for the static draw sizes (or
-    made more (primitive, tile) pairs than ``room``, per level, allows: see
-    :class:`_SwarmLoss`).
+    made more (primitive, tile) pairs than ``room``, per level, allows; ``table``: the
+    perturbation's noise where it is at hand: see :class:`_SwarmLoss`).
 
     Extreme agents (e.g. α_blend = 1 summing a dozen wrinkles into huge pores) can make more
     (primitive, tile) pairs than the bins hold, which would leave the map incomplete. Such a
@@ -641,7 +647,7 @@ def _draw_checked(
     with as many passes as it needs, differentiably (the drawing's own gradient).
     """
     out, bad = jnp.zeros(layout.shape, jnp.float32), jnp.zeros((), bool)
-    for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout, room)):
+    for i, (k_noise, prims, bins) in enumerate(_binned(key, sims, levels, layout, room, table)):
         bins = bins._replace(count=jnp.where(bins.overflow, 0, bins.count))  # no primitive then
         out = out + render(k_noise, prims, bins, levels[i], layout.shape, _options(i, layout), True)
         bad = bad | bins.overflow
@@ -656,15 +662,21 @@ def _options(level: int, layout: _Layout) -> DrawOptions:
     )  # fmt: skip
 
 
-def _binned(key, sims, levels, layout: _Layout, room: Array | None = None):
+def _level_keys(key) -> list[tuple[Array, Array]]:
+    """Per level, the keys of a draw's perturbation and of its additive noise."""
+    return [tuple(jax.random.split(k)) for k in jax.random.split(jax.random.fold_in(key, 7))]
+
+
+def _binned(key, sims, levels, layout: _Layout, room: Array | None = None, table=None):
     """Per level: the noise key, the primitives and their bins (``room``: the pairs each
-    level's bins may hold, default its entries)."""
-    for i, (k, (graph, w), params) in enumerate(
-        zip(jax.random.split(jax.random.fold_in(key, 7)), sims, levels, strict=True)
+    level's bins may hold, default its entries; ``table``: a :class:`_NoiseTable`, or None)."""
+    index = layout.index(levels[0].d)
+    for i, ((k_perturb, k_noise), (graph, w), params) in enumerate(
+        zip(_level_keys(key), sims, levels, strict=True)
     ):
         opts = _options(i, layout)
-        k_perturb, k_noise = jax.random.split(k)
-        prims = primitives(k_perturb, graph, w, params, layout.shape)
+        noise = None if table is None else table.noise(key, i, index, graph, params)
+        prims = primitives(k_perturb, graph, w, params, layout.shape, noise)
         bins = bin_primitives(
             prims, layout.shape, tile=_TILE, span=opts.span, bulge=opts.bulge, periodic=True,
             entries=opts.entries, room=None if room is None else room[i],
@@ -696,6 +708,38 @@ def _with(params: WrinkleParams, changes: dict[str, Array]) -> WrinkleParams:
     return eqx.tree_at(lambda p: [getattr(p, n) for n in names], params, values)
 
 
+class _NoiseTable(eqx.Module):
+    """The perturbation's noise (:func:`perturbation_noise`) of one simulation key's draws on
+    every graph of a layout's grid, per level, stacked over the grid's values. It depends on
+    the key, the graph and α_fperturb alone (not fitted), yet costs a seventh to a fifth of an
+    agent's evaluation: a large fit computes it once per trial (:func:`_noise_table`) and
+    draws each agent with its graph's rows, the same bits as computed in its draw."""
+
+    key: Array  # the key's data
+    levels: tuple[tuple[Array, Array], ...]
+
+    def noise(self, key, level: int, index, graph: PoreGraph, params: WrinkleParams):
+        """Level ``level``'s noise for ``graph``, grid value ``index`` (its rows cut to the
+        graph's slots), where ``key`` is the table's, else computed (a held-out key's draws)."""
+        pores, verts = (a[index] for a in self.levels[level])
+        rows = (pores[: graph.positions.shape[0]], verts[: graph.edge_mask.shape[0]])
+        mine = jnp.all(jax.random.key_data(key) == self.key)
+        k_perturb = _level_keys(key)[level][0]
+        computed = functools.partial(perturbation_noise, k_perturb, graph, params)
+        return jax.lax.cond(mine, lambda: rows, computed)
+
+
+@eqx.filter_jit
+def _noise_table(key, layout: _Layout, base: tuple[WrinkleParams, WrinkleParams]) -> _NoiseTable:
+    """The :class:`_NoiseTable` of ``key`` on ``layout``'s graphs (α_fperturb from ``base``)."""
+    keys = [k_perturb for k_perturb, _ in _level_keys(key)]
+    levels = tuple(
+        jax.vmap(functools.partial(perturbation_noise, k), (0, None))(graphs, params)
+        for k, graphs, params in zip(keys, layout.graphs, base, strict=True)
+    )
+    return _NoiseTable(jax.random.key_data(key), levels)
+
+
 class _SwarmLoss(eqx.Module):
     """Losses of the swarm ``(M, P) → (M,)``: simulate, draw, compare statistics (arrays are
     traced leaves). The agents are evaluated one after the other (``lax.map``; batching them
@@ -712,7 +756,11 @@ class _SwarmLoss(eqx.Module):
     ``room`` (traced, per level; None: the layout's entries) caps the (primitive, tile) pairs
     a level may draw below the layout's static entries: a small fit's swarm bins hold twice
     what it may draw, so that held-out keys whose maps need more are scored by the same program
-    with more room rather than by a second one to compile (:func:`_heldout`)."""
+    with more room rather than by a second one to compile (:func:`_heldout`).
+
+    ``table`` (a :class:`_NoiseTable` of ``key``, or None) holds the perturbation's noise on
+    every graph of the grid: the agents take their rows instead of computing them (a key other
+    than the table's, e.g. a held-out one, computes its own)."""
 
     key: Array
     target: Any
@@ -721,6 +769,7 @@ class _SwarmLoss(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     mesh: Mesh | None = eqx.field(static=True, default=None)
     room: Array | None = None
+    table: _NoiseTable | None = None
 
     def __call__(self, xs):
         if self.mesh is None:
@@ -769,7 +818,7 @@ class _SwarmLoss(eqx.Module):
     def _map(self, layout: _Layout, levels):
         """The loss of one agent (NaN where undrawable)."""
         sims, levels = _simulate(self.key, levels, layout)
-        image, bad = _draw_checked(self.key, sims, levels, layout, self.room)
+        image, bad = _draw_checked(self.key, sims, levels, layout, self.room, self.table)
         return jnp.where(bad, jnp.nan, _loss(image, self.target))
 
 
@@ -981,10 +1030,13 @@ def fit_wrinkles(
         layout = whole.roomier()
     target_stats = texture_stats(target)
     sim_keys = jax.random.split(k_sim, n_trials)
+    # the perturbation's noise on every graph, once per trial, where the evaluations repay it
+    tabled = evaluations >= SPLIT_FROM and not any(n.endswith("fperturb") for n in names)
+    tables = [_noise_table(sk, layout, base) if tabled else None for sk in sim_keys]
     # one swarm per trial, each with its own simulation key; all share one compiled loss
     runs = [
-        _Trial(k, _SwarmLoss(sk, target_stats, base, layout, names, mesh, room))
-        for k, sk in zip(jax.random.split(k_swarm, n_trials), sim_keys, strict=True)
+        _Trial(k, _SwarmLoss(sk, target_stats, base, layout, names, mesh, room, table))
+        for k, sk, table in zip(jax.random.split(k_swarm, n_trials), sim_keys, tables, strict=True)
     ]
     low, high = low.astype(np.float32), high.astype(np.float32)
     search = (low, high, cyclic, settings)
@@ -1013,7 +1065,7 @@ def fit_wrinkles(
     def refine(sim_key, params, start):
         """:func:`_refine` of ``params`` with a trial's simulation key from its swarm loss
         ``start``."""
-        bits = np.asarray(jax.random.key_data(sim_key)).tobytes()
+        bits = _key_bits(sim_key)
         name = (bits, np.asarray(params).tobytes(), float(start))
         if name not in solved:
             if ahead is not None:
